@@ -1,0 +1,106 @@
+//! Boxes in R^n: primitive-action bounds, subgoal bounds.
+
+use serde::{Deserialize, Serialize};
+
+use crate::Rng;
+
+/// An axis-aligned box `[low_d, high_d]` per dimension.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Bounds {
+    pub low: Vec<f32>,
+    pub high: Vec<f32>,
+}
+
+impl Bounds {
+    /// A box from per-dimension limits; panics if they disagree in length or `low > high`.
+    pub fn new(low: Vec<f32>, high: Vec<f32>) -> Self {
+        assert_eq!(
+            low.len(),
+            high.len(),
+            "bounds: low and high differ in length"
+        );
+        assert!(
+            low.iter().zip(&high).all(|(l, h)| l <= h),
+            "bounds: low above high"
+        );
+        Self { low, high }
+    }
+
+    /// The box `[-r_d, r_d]`.
+    pub fn symmetric(radius: &[f32]) -> Self {
+        Self::new(radius.iter().map(|r| -r).collect(), radius.to_vec())
+    }
+
+    pub fn dim(&self) -> usize {
+        self.low.len()
+    }
+
+    /// Centre of dimension `d` (the actor's output offset).
+    pub fn offset(&self, d: usize) -> f32 {
+        0.5 * (self.low[d] + self.high[d])
+    }
+
+    /// Half the width of dimension `d` (the actor's output scale).
+    pub fn half_range(&self, d: usize) -> f32 {
+        0.5 * (self.high[d] - self.low[d])
+    }
+
+    /// Clips `x` into the box in place.
+    pub fn clip(&self, x: &mut [f32]) {
+        debug_assert_eq!(x.len(), self.dim());
+        for ((v, lo), hi) in x.iter_mut().zip(&self.low).zip(&self.high) {
+            *v = v.clamp(*lo, *hi);
+        }
+    }
+
+    /// Whether `x` lies in the box (boundaries included).
+    pub fn contains(&self, x: &[f32]) -> bool {
+        x.len() == self.dim()
+            && x.iter()
+                .zip(&self.low)
+                .zip(&self.high)
+                .all(|((v, lo), hi)| *lo <= *v && *v <= *hi)
+    }
+
+    /// Writes a uniform draw from the box into `out`.
+    pub fn sample(&self, rng: &mut Rng, out: &mut [f32]) {
+        debug_assert_eq!(out.len(), self.dim());
+        for (d, o) in out.iter_mut().enumerate() {
+            *o = rng.uniform(self.low[d], self.high[d]);
+        }
+    }
+}
+
+/// Whether `achieved` is within `threshold` of `goal` on every dimension (HAC's goal test).
+pub fn within(achieved: &[f32], goal: &[f32], threshold: &[f32]) -> bool {
+    debug_assert_eq!(achieved.len(), goal.len());
+    debug_assert_eq!(goal.len(), threshold.len());
+    achieved
+        .iter()
+        .zip(goal)
+        .zip(threshold)
+        .all(|((a, g), t)| (a - g).abs() <= *t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn offset_half_range_clip() {
+        let b = Bounds::new(vec![-1.0, 0.0], vec![3.0, 2.0]);
+        assert_eq!(b.offset(0), 1.0);
+        assert_eq!(b.half_range(0), 2.0);
+        let mut x = [5.0, -1.0];
+        b.clip(&mut x);
+        assert_eq!(x, [3.0, 0.0]);
+        assert!(b.contains(&x));
+        assert!(!b.contains(&[3.1, 1.0]));
+    }
+
+    #[test]
+    fn within_every_dimension() {
+        assert!(within(&[0.0, 1.0], &[0.05, 1.15], &[0.1, 0.2]));
+        assert!(!within(&[0.0, 1.0], &[0.1, 1.3], &[0.1, 0.2]));
+    }
+}

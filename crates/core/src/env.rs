@@ -1,0 +1,117 @@
+//! What an environment is to HAC: its spaces, projections, goal distributions and dynamics.
+
+use serde::{Deserialize, Serialize};
+
+use crate::{AgentConfig, Bounds, Rng};
+
+/// Training episodes draw from the training end-goal distribution and explore; test episodes use
+/// the test distribution and act greedily.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    Train,
+    Test,
+}
+
+/// Everything static an environment says about itself (ENVS.md's list).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EnvSpec {
+    /// Registry name, e.g. `pendulum`.
+    pub name: String,
+    /// One-line human description.
+    pub description: String,
+    /// Dimension of the observed state vector.
+    pub state_dim: usize,
+    /// Bounds of the primitive action (level 0's output).
+    pub action_bounds: Bounds,
+    /// Dimension of the end-goal space (the top level's goal).
+    pub end_goal_dim: usize,
+    /// Per-dimension threshold for reaching an end goal.
+    pub end_goal_thresholds: Vec<f32>,
+    /// Bounds of the subgoal space (the output of every level above 0).
+    pub subgoal_bounds: Bounds,
+    /// Per-dimension threshold for reaching a subgoal.
+    pub subgoal_thresholds: Vec<f32>,
+    /// Episode budget in primitive actions.
+    pub max_actions: usize,
+    /// Physics integration steps per primitive action.
+    pub physics_steps_per_action: usize,
+}
+
+impl EnvSpec {
+    pub fn action_dim(&self) -> usize {
+        self.action_bounds.dim()
+    }
+
+    pub fn subgoal_dim(&self) -> usize {
+        self.subgoal_bounds.dim()
+    }
+
+    /// Input/output dimensions of level `level` in a hierarchy of `levels` levels.
+    pub fn level_dims(&self, level: usize, levels: usize) -> LevelDims {
+        debug_assert!(level < levels);
+        LevelDims {
+            state: self.state_dim,
+            goal: if level + 1 == levels {
+                self.end_goal_dim
+            } else {
+                self.subgoal_dim()
+            },
+            action: if level == 0 {
+                self.action_dim()
+            } else {
+                self.subgoal_dim()
+            },
+        }
+    }
+
+    /// The bounds of level `level`'s output.
+    pub fn level_action_bounds(&self, level: usize) -> &Bounds {
+        if level == 0 {
+            &self.action_bounds
+        } else {
+            &self.subgoal_bounds
+        }
+    }
+}
+
+/// Sizes of one level's inputs and outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct LevelDims {
+    pub state: usize,
+    pub goal: usize,
+    pub action: usize,
+}
+
+/// A built-in environment. Deterministic for a given seed: all randomness comes from the `Rng`
+/// passed in. `step` must not allocate (it is the hottest loop of the system).
+pub trait Env: Send {
+    fn spec(&self) -> &EnvSpec;
+
+    /// The recommended hyperparameters for a hierarchy of `levels` levels (ENVS.md's defaults).
+    fn default_config(&self, levels: usize) -> AgentConfig;
+
+    /// Draws an initial state from the initial-state distribution.
+    fn reset(&mut self, rng: &mut Rng);
+
+    /// The current observation (`spec().state_dim` values).
+    fn state(&self) -> &[f32];
+
+    /// Applies one primitive action (clipped to the action bounds by the caller) for
+    /// `physics_steps_per_action` integration steps.
+    fn step(&mut self, action: &[f32]);
+
+    /// Whether the environment itself ended the episode (most tasks never do).
+    fn terminated(&self) -> bool {
+        false
+    }
+
+    /// Projects a state into the end-goal space.
+    fn project_end_goal(&self, state: &[f32], out: &mut [f32]);
+
+    /// Projects a state into the subgoal space; the result must lie in `subgoal_bounds`.
+    fn project_subgoal(&self, state: &[f32], out: &mut [f32]);
+
+    /// Draws an end goal from the training or test distribution.
+    fn sample_end_goal(&self, rng: &mut Rng, mode: Mode, out: &mut [f32]);
+}

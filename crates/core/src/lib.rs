@@ -1,0 +1,25 @@
+//! HAC core: everything about Hierarchical Actor-Critic that involves no IO and no learning.
+//!
+//! - [`rng`]: the seeded, portable random generator all components draw from.
+//! - [`bounds`]: boxes (action and subgoal bounds) and the per-dimension goal test.
+//! - [`env`]: the [`Env`] trait and the static [`EnvSpec`] every environment describes.
+//! - [`config`]: [`AgentConfig`], the hyperparameters, validated with errors that name the key.
+//! - [`transition`]: transitions as produced, the [`TransitionSink`] they go to, and [`Batch`].
+//! - [`rollout`]: the hierarchy rollout: one episode through k levels with the behaviour policy,
+//!   subgoal testing, and all three transition kinds (hindsight action, HER, subgoal penalty).
+
+pub mod bounds;
+pub mod config;
+pub mod env;
+pub mod rng;
+pub mod rollout;
+pub mod transition;
+
+pub use bounds::{Bounds, within};
+pub use config::{AgentConfig, ConfigError, Noise};
+pub use env::{Env, EnvSpec, LevelDims, Mode};
+pub use rng::Rng;
+pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
+pub use transition::{
+    Batch, NullSink, OwnedTransition, Transition, TransitionKind, TransitionSink,
+};

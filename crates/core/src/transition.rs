@@ -1,0 +1,103 @@
+//! Transitions as the rollout produces them, and batches as the learner consumes them.
+
+use serde::{Deserialize, Serialize};
+
+use crate::LevelDims;
+
+/// Which of HAC's three rules produced a transition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TransitionKind {
+    /// The action actually achieved (or the subgoal, if the level below reached it).
+    HindsightAction,
+    /// A copy of a hindsight action transition relabelled with an achieved goal (HER).
+    HindsightGoal,
+    /// A tested subgoal that the level below missed: reward -H, terminal.
+    SubgoalPenalty,
+}
+
+/// One transition `[state, action, reward, next_state, goal, terminal]`, borrowed from the
+/// rollout's buffers; `terminal` means the target does not bootstrap (discount 0).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Transition<'a> {
+    pub kind: TransitionKind,
+    pub state: &'a [f32],
+    pub action: &'a [f32],
+    pub reward: f32,
+    pub next_state: &'a [f32],
+    pub goal: &'a [f32],
+    pub terminal: bool,
+}
+
+/// Receives every transition the rollout creates, tagged with the level it belongs to.
+pub trait TransitionSink {
+    fn push(&mut self, level: usize, transition: &Transition<'_>);
+}
+
+/// Discards everything (test episodes, benchmarks).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NullSink;
+
+impl TransitionSink for NullSink {
+    fn push(&mut self, _level: usize, _transition: &Transition<'_>) {}
+}
+
+/// An owned transition, for tests and tools that keep what they receive.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OwnedTransition {
+    pub level: usize,
+    pub kind: TransitionKind,
+    pub state: Vec<f32>,
+    pub action: Vec<f32>,
+    pub reward: f32,
+    pub next_state: Vec<f32>,
+    pub goal: Vec<f32>,
+    pub terminal: bool,
+}
+
+/// Keeps every transition it receives, in order.
+impl TransitionSink for Vec<OwnedTransition> {
+    fn push(&mut self, level: usize, t: &Transition<'_>) {
+        self.push(OwnedTransition {
+            level,
+            kind: t.kind,
+            state: t.state.to_vec(),
+            action: t.action.to_vec(),
+            reward: t.reward,
+            next_state: t.next_state.to_vec(),
+            goal: t.goal.to_vec(),
+            terminal: t.terminal,
+        });
+    }
+}
+
+/// A minibatch for one level in structure-of-arrays layout. Sample `j` occupies
+/// `states[j * dims.state .. (j + 1) * dims.state]`, and so on: read as a column-major matrix,
+/// each field is `dim x len` with one sample per column. `terminals` holds 1.0 or 0.0.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batch {
+    pub dims: LevelDims,
+    pub len: usize,
+    pub states: Vec<f32>,
+    pub actions: Vec<f32>,
+    pub rewards: Vec<f32>,
+    pub next_states: Vec<f32>,
+    pub goals: Vec<f32>,
+    pub terminals: Vec<f32>,
+}
+
+impl Batch {
+    /// A zero-filled batch of `len` samples, allocated once and refilled by samplers.
+    pub fn zeros(dims: LevelDims, len: usize) -> Self {
+        Self {
+            dims,
+            len,
+            states: vec![0.0; dims.state * len],
+            actions: vec![0.0; dims.action * len],
+            rewards: vec![0.0; len],
+            next_states: vec![0.0; dims.state * len],
+            goals: vec![0.0; dims.goal * len],
+            terminals: vec![0.0; len],
+        }
+    }
+}

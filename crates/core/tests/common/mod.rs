@@ -1,0 +1,181 @@
+//! Small environments and scripted collaborators for rollout tests.
+#![allow(dead_code)] // each test binary uses its own part of this module
+
+use std::collections::VecDeque;
+
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Exploration, Mode, Noise, Policy, Rng};
+
+/// A point on a line or in a box: `x += action`, clipped to `[-extent, extent]^d`.
+/// The state, end goal and subgoal spaces are all the position itself.
+#[derive(Debug, Clone)]
+pub struct PointEnv {
+    pub spec: EnvSpec,
+    pub x: Vec<f32>,
+    pub extent: f32,
+    pub start: Option<Vec<f32>>,
+}
+
+impl PointEnv {
+    pub fn new(dim: usize, max_step: f32, extent: f32, threshold: f32, max_actions: usize) -> Self {
+        let spec = EnvSpec {
+            name: "point".into(),
+            description: "a point moved by bounded displacements".into(),
+            state_dim: dim,
+            action_bounds: Bounds::symmetric(&vec![max_step; dim]),
+            end_goal_dim: dim,
+            end_goal_thresholds: vec![threshold; dim],
+            subgoal_bounds: Bounds::symmetric(&vec![extent; dim]),
+            subgoal_thresholds: vec![threshold; dim],
+            max_actions,
+            physics_steps_per_action: 1,
+        };
+        Self {
+            spec,
+            x: vec![0.0; dim],
+            extent,
+            start: None,
+        }
+    }
+}
+
+impl Env for PointEnv {
+    fn spec(&self) -> &EnvSpec {
+        &self.spec
+    }
+
+    fn default_config(&self, levels: usize) -> AgentConfig {
+        agent_config(levels, 5)
+    }
+
+    fn reset(&mut self, rng: &mut Rng) {
+        match &self.start {
+            Some(s) => self.x.copy_from_slice(s),
+            None => {
+                let half = self.extent / 2.0;
+                for x in &mut self.x {
+                    *x = rng.uniform(-half, half);
+                }
+            }
+        }
+    }
+
+    fn state(&self) -> &[f32] {
+        &self.x
+    }
+
+    fn step(&mut self, action: &[f32]) {
+        for (x, a) in self.x.iter_mut().zip(action) {
+            *x = (*x + a).clamp(-self.extent, self.extent);
+        }
+    }
+
+    fn project_end_goal(&self, state: &[f32], out: &mut [f32]) {
+        out.copy_from_slice(state);
+    }
+
+    fn project_subgoal(&self, state: &[f32], out: &mut [f32]) {
+        out.copy_from_slice(state);
+        self.spec.subgoal_bounds.clip(out);
+    }
+
+    fn sample_end_goal(&self, rng: &mut Rng, _mode: Mode, out: &mut [f32]) {
+        let half = self.extent / 2.0;
+        for g in out {
+            *g = rng.uniform(-half, half);
+        }
+    }
+}
+
+pub fn agent_config(levels: usize, horizon: usize) -> AgentConfig {
+    AgentConfig {
+        levels,
+        horizon,
+        subgoal_test_prob: 0.3,
+        random_action_prob: 0.2,
+        action_noise: Noise::Relative(0.1),
+        subgoal_noise: Noise::Relative(0.1),
+        num_replay_goals: 3,
+        gamma: 0.98,
+        hidden_layers: vec![64, 64, 64],
+        actor_lr: 1e-3,
+        critic_lr: 1e-3,
+        batch_size: 1024,
+        updates_per_episode: 40,
+        target_tau: None,
+        episodes_to_store: 10,
+        replay_capacity_max: 1_000_000,
+        exploration_episodes: 10,
+        test_episodes: 10,
+    }
+}
+
+/// A policy that replays scripted outputs per level (cycling through each level's list).
+#[derive(Debug, Default)]
+pub struct ScriptedPolicy {
+    pub outputs: Vec<VecDeque<Vec<f32>>>,
+}
+
+impl Policy for ScriptedPolicy {
+    fn act(&mut self, level: usize, _state: &[f32], _goal: &[f32], action: &mut [f32]) {
+        let q = &mut self.outputs[level];
+        let next = q.pop_front().expect("scripted policy ran out of outputs");
+        action.copy_from_slice(&next);
+        q.push_back(next);
+    }
+}
+
+/// Exploration whose every decision is scripted.
+#[derive(Debug, Default)]
+pub struct ScriptedExploration {
+    /// Added to the greedy output of each level.
+    pub perturbation: Vec<Vec<f32>>,
+    /// Test decisions of each level, in order.
+    pub tests: Vec<VecDeque<bool>>,
+    /// Random hindsight-goal indices, in order of request.
+    pub replay_indices: VecDeque<usize>,
+}
+
+impl Exploration for ScriptedExploration {
+    fn explore(&mut self, level: usize, _bounds: &Bounds, action: &mut [f32]) {
+        for (a, p) in action.iter_mut().zip(&self.perturbation[level]) {
+            *a += p;
+        }
+    }
+
+    fn test_subgoal(&mut self, level: usize) -> bool {
+        self.tests[level]
+            .pop_front()
+            .expect("unscripted subgoal test")
+    }
+
+    fn replay_goal_index(&mut self, _level: usize, n: usize) -> usize {
+        let i = self
+            .replay_indices
+            .pop_front()
+            .expect("unscripted replay goal index");
+        assert!(
+            i < n,
+            "scripted replay index {i} out of range for {n} attempts"
+        );
+        i
+    }
+}
+
+/// A policy that outputs uniform random values in a box wider than the bounds (so clipping is
+/// exercised), per level.
+#[derive(Debug)]
+pub struct RandomPolicy {
+    pub rng: Rng,
+    pub bounds: Vec<Bounds>,
+}
+
+impl Policy for RandomPolicy {
+    fn act(&mut self, level: usize, _state: &[f32], _goal: &[f32], action: &mut [f32]) {
+        let b = &self.bounds[level];
+        for (d, a) in action.iter_mut().enumerate() {
+            let (lo, hi) = (b.low[d], b.high[d]);
+            let pad = 0.2 * (hi - lo);
+            *a = self.rng.uniform(lo - pad, hi + pad);
+        }
+    }
+}

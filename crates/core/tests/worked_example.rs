@@ -1,0 +1,217 @@
+//! The paper's worked example (section 3.8), rebuilt exactly: two levels, H = 5. Level 1 proposes
+//! g0 untested; level 0 acts 5 times with noise and misses. Level 1 then proposes g2 and tests it;
+//! level 0 acts greedily 5 times and misses, so level 1 is penalised. Every transition is checked.
+
+mod common;
+
+use std::collections::VecDeque;
+
+use common::{PointEnv, ScriptedExploration, ScriptedPolicy, agent_config};
+use hac_core::{Hierarchy, Mode, OwnedTransition, TransitionKind};
+
+const FLAG: f32 = 100.0;
+
+fn t(
+    level: usize,
+    kind: TransitionKind,
+    s: f32,
+    a: f32,
+    r: f32,
+    s2: f32,
+    g: f32,
+    term: bool,
+) -> OwnedTransition {
+    OwnedTransition {
+        level,
+        kind,
+        state: vec![s],
+        action: vec![a],
+        reward: r,
+        next_state: vec![s2],
+        goal: vec![g],
+        terminal: term,
+    }
+}
+
+/// The HER block of one call: every attempt relabelled with each picked achieved goal.
+fn her_block(level: usize, attempts: &[(f32, f32, f32)], picks: &[usize]) -> Vec<OwnedTransition> {
+    let mut out = Vec::new();
+    for &p in picks {
+        let goal = attempts[p].2;
+        for &(s, a, s2) in attempts {
+            let hit = s2 == goal;
+            out.push(t(
+                level,
+                TransitionKind::HindsightGoal,
+                s,
+                a,
+                if hit { 0.0 } else { -1.0 },
+                s2,
+                goal,
+                hit,
+            ));
+        }
+    }
+    out
+}
+
+#[test]
+fn section_3_8_worked_example() {
+    use TransitionKind::*;
+    // Positions move by the action; 10 primitive actions end the episode after level 1's second
+    // attempt, exactly the span the paper walks through.
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 10);
+    let mut config = agent_config(2, 5);
+    config.num_replay_goals = 3;
+    let mut policy = ScriptedPolicy {
+        outputs: vec![
+            VecDeque::from([vec![1.0]]),              // level 0: always +1
+            VecDeque::from([vec![10.0], vec![20.0]]), // level 1: g0 = 10, then g2 = 20
+        ],
+    };
+    let mut exploration = ScriptedExploration {
+        perturbation: vec![vec![0.5], vec![0.0]], // level 0's "noise": +0.5
+        tests: vec![VecDeque::new(), VecDeque::from([false, true])],
+        // level 0 first call: 1, 3 (+ last); second call: 0, 2 (+ last); level 1: 0 (+ last).
+        replay_indices: VecDeque::from([1, 3, 0, 2, 0]),
+    };
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let mut got: Vec<OwnedTransition> = Vec::new();
+    let outcome = hierarchy.run_episode_from(
+        &mut env,
+        &[FLAG],
+        &mut policy,
+        &mut exploration,
+        Mode::Train,
+        &mut got,
+    );
+    assert_eq!(outcome.steps, 10);
+    assert!(!outcome.success);
+
+    let mut want = Vec::new();
+    // Level 1, attempt 1: subgoal g0 = 10, untested. Level 0 acts with noise: 1.5 per step.
+    let first: Vec<(f32, f32, f32)> = (0..5)
+        .map(|j| (1.5 * j as f32, 1.5, 1.5 * (j + 1) as f32))
+        .collect();
+    for &(s, a, s2) in &first {
+        want.push(t(0, HindsightAction, s, a, -1.0, s2, 10.0, false));
+    }
+    want.extend(her_block(0, &first, &[1, 3, 4]));
+    // Level 1 records [s0, s1, -1, s1, flag, no]: the achieved state replaces the missed subgoal.
+    want.push(t(1, HindsightAction, 0.0, 7.5, -1.0, 7.5, FLAG, false));
+    // Level 1, attempt 2: subgoal g2 = 20, tested. Level 0 acts greedily: +1 per step, misses.
+    let second: Vec<(f32, f32, f32)> = (0..5)
+        .map(|j| (7.5 + j as f32, 1.0, 8.5 + j as f32))
+        .collect();
+    for &(s, a, s2) in &second {
+        want.push(t(0, HindsightAction, s, a, -1.0, s2, 20.0, false));
+    }
+    want.extend(her_block(0, &second, &[0, 2, 4]));
+    // Hindsight action [s2, s3, -1, s3, flag, no], then the penalty [s2, g2, -H, s3, flag, yes].
+    want.push(t(1, HindsightAction, 7.5, 12.5, -1.0, 12.5, FLAG, false));
+    want.push(t(1, SubgoalPenalty, 7.5, 20.0, -5.0, 12.5, FLAG, true));
+    // Level 1 returns (budget spent); HER over its two attempts: one random pick (0) plus the last.
+    want.extend(her_block(1, &[(0.0, 7.5, 7.5), (7.5, 12.5, 12.5)], &[0, 1]));
+
+    assert_eq!(got.len(), want.len(), "transition count");
+    for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+        assert_eq!(g, w, "transition {i} differs");
+    }
+    assert!(
+        exploration.replay_indices.is_empty(),
+        "every scripted replay index was used"
+    );
+}
+
+#[test]
+fn reached_subgoal_is_its_own_hindsight_action_and_test_passes_without_penalty() {
+    use TransitionKind::*;
+    // Level 1 proposes 3.0 (tested); level 0 moves +1 greedily and reaches it in 3 attempts.
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 3);
+    let config = agent_config(2, 5);
+    let mut policy = ScriptedPolicy {
+        outputs: vec![VecDeque::from([vec![1.0]]), VecDeque::from([vec![3.0]])],
+    };
+    let mut exploration = ScriptedExploration {
+        perturbation: vec![vec![0.0], vec![0.0]],
+        tests: vec![VecDeque::new(), VecDeque::from([true])],
+        replay_indices: VecDeque::from([0, 0, 0]),
+    };
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let mut got: Vec<OwnedTransition> = Vec::new();
+    hierarchy.run_episode_from(
+        &mut env,
+        &[FLAG],
+        &mut policy,
+        &mut exploration,
+        Mode::Train,
+        &mut got,
+    );
+    let level0_ha: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 0 && t.kind == HindsightAction)
+        .collect();
+    assert_eq!(
+        level0_ha.len(),
+        3,
+        "level 0 returns as soon as its goal is reached"
+    );
+    assert_eq!(
+        *level0_ha[2],
+        t(0, HindsightAction, 2.0, 1.0, 0.0, 3.0, 3.0, true)
+    );
+    let level1: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 1 && t.kind != HindsightGoal)
+        .collect();
+    assert_eq!(
+        level1,
+        vec![&t(1, HindsightAction, 0.0, 3.0, -1.0, 3.0, FLAG, false)]
+    );
+}
+
+#[test]
+fn test_mode_is_greedy_stores_nothing_and_top_level_ignores_horizon() {
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 37);
+    let config = agent_config(2, 5);
+    let mut policy = ScriptedPolicy {
+        outputs: vec![VecDeque::from([vec![1.0]]), VecDeque::from([vec![500.0]])],
+    };
+    // Any exploration call would panic: the scripts are empty.
+    let mut exploration = ScriptedExploration::default();
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let mut got: Vec<OwnedTransition> = Vec::new();
+    let outcome = hierarchy.run_episode_from(
+        &mut env,
+        &[FLAG],
+        &mut policy,
+        &mut exploration,
+        Mode::Test,
+        &mut got,
+    );
+    assert!(got.is_empty());
+    // 37 > H * H = 25: the top level kept proposing subgoals until the budget ran out.
+    assert_eq!(outcome.steps, 37);
+    assert_eq!(env.x, vec![37.0]);
+}
+
+#[test]
+fn episode_ends_when_end_goal_reached() {
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 100);
+    let config = agent_config(2, 5);
+    let mut policy = ScriptedPolicy {
+        outputs: vec![VecDeque::from([vec![1.0]]), VecDeque::from([vec![50.0]])],
+    };
+    let mut exploration = ScriptedExploration::default();
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let outcome = hierarchy.run_episode_from(
+        &mut env,
+        &[7.0],
+        &mut policy,
+        &mut exploration,
+        Mode::Test,
+        &mut hac_core::NullSink,
+    );
+    assert!(outcome.success);
+    assert_eq!(outcome.steps, 7);
+}
