@@ -85,7 +85,7 @@ pub struct LevelDims {
 
 /// A built-in environment. Deterministic for a given seed: all randomness comes from the `Rng`
 /// passed in. `step` must not allocate (it is the hottest loop of the system).
-pub trait Env: Send {
+pub trait Env: Send + std::fmt::Debug {
     fn spec(&self) -> &EnvSpec;
 
     /// The recommended hyperparameters for a hierarchy of `levels` levels (ENVS.md's defaults).

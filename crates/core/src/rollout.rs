@@ -11,6 +11,10 @@
 //!   if it tested a subgoal that the level below missed after maxing out, a penalty transition;
 //! - when a level returns it replays its attempts relabelled with achieved goals (HER).
 //!
+//! `terminal` means "do not bootstrap": a reached goal, a penalty, or a next state in which the
+//! environment itself ended the episode (only tasks like mountain-car ever do; the paper's tasks
+//! never terminate, so for them terminal is exactly "goal reached").
+//!
 //! Within a level the order of transitions handed to the sink is: per attempt the hindsight
 //! action transition then (if any) the penalty; when the level returns, the HER copies grouped by
 //! hindsight goal in ascending attempt index.
@@ -113,6 +117,8 @@ struct HerList {
     actions: Vec<f32>,
     next_states: Vec<f32>,
     achieved: Vec<f32>,
+    /// Whether the attempt ended in a state where the environment terminated.
+    ended: Vec<bool>,
 }
 
 /// Per-level scratch that must survive the recursive call into the level below.
@@ -297,11 +303,12 @@ impl Hierarchy {
             };
             attempts += 1;
 
+            let terminated = ep.env.terminated();
             if train {
-                self.store_attempt(ep, i, test_next);
+                self.store_attempt(ep, i, test_next, terminated);
             }
 
-            let budget_spent = self.steps >= self.spec.max_actions || ep.env.terminated();
+            let budget_spent = self.steps >= self.spec.max_actions || terminated;
             let higher_reached = highest_reached.is_some_and(|h| h >= i);
             let out_of_attempts = attempts >= self.horizon && !(ep.mode == Mode::Test && i == top);
             if higher_reached || budget_spent || out_of_attempts {
@@ -341,8 +348,15 @@ impl Hierarchy {
     }
 
     /// Stores the hindsight action transition and (if due) the penalty of level `i`'s last
-    /// attempt, and remembers the attempt for HER.
-    fn store_attempt(&mut self, ep: &mut Episode<'_>, i: usize, tested_subgoal: bool) {
+    /// attempt, and remembers the attempt for HER. `terminated`: the environment ended the episode
+    /// in the attempt's next state, so nothing follows it and the target must not bootstrap.
+    fn store_attempt(
+        &mut self,
+        ep: &mut Episode<'_>,
+        i: usize,
+        tested_subgoal: bool,
+        terminated: bool,
+    ) {
         let top = self.levels.len() - 1;
         let (below, rest) = self.levels.split_at_mut(i);
         let lv = &mut rest[0];
@@ -356,7 +370,7 @@ impl Hierarchy {
         let (reward, terminal) = if lv.reached {
             (0.0, true)
         } else {
-            (-1.0, false)
+            (-1.0, terminated)
         };
         ep.sink.push(
             i,
@@ -388,6 +402,8 @@ impl Hierarchy {
             buf.truncate(n * src.len());
             buf.extend_from_slice(src);
         }
+        her.ended.truncate(n);
+        her.ended.push(terminated);
         her.len = n + 1;
 
         if tested_subgoal && lower.is_some_and(|l| l.maxed_out) {
@@ -444,7 +460,7 @@ impl Hierarchy {
                         reward: if reached { 0.0 } else { -1.0 },
                         next_state: &her.next_states[j * sd..(j + 1) * sd],
                         goal,
-                        terminal: reached,
+                        terminal: reached || her.ended[j],
                     },
                 );
             }

@@ -11,6 +11,8 @@ use hac_core::{Hierarchy, Mode, OwnedTransition, TransitionKind};
 
 const FLAG: f32 = 100.0;
 
+// One argument per field of the paper's tuple `[s, a, r, s', g, terminal]`, plus level and kind.
+#[allow(clippy::too_many_arguments)]
 fn t(
     level: usize,
     kind: TransitionKind,
@@ -214,4 +216,56 @@ fn episode_ends_when_end_goal_reached() {
     );
     assert!(outcome.success);
     assert_eq!(outcome.steps, 7);
+}
+
+#[test]
+fn environment_termination_ends_the_episode_and_stops_bootstrapping() {
+    use TransitionKind::*;
+    // Level 0 moves +1 towards subgoal 10; the environment terminates at x >= 3.
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 100);
+    env.terminate_at = Some(3.0);
+    let config = agent_config(2, 5);
+    let mut policy = ScriptedPolicy {
+        outputs: vec![VecDeque::from([vec![1.0]]), VecDeque::from([vec![10.0]])],
+    };
+    let mut exploration = ScriptedExploration {
+        perturbation: vec![vec![0.0], vec![0.0]],
+        tests: vec![VecDeque::new(), VecDeque::from([false])],
+        replay_indices: VecDeque::from([0, 0, 0]),
+    };
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let mut got: Vec<OwnedTransition> = Vec::new();
+    let outcome = hierarchy.run_episode_from(
+        &mut env,
+        &[FLAG],
+        &mut policy,
+        &mut exploration,
+        Mode::Train,
+        &mut got,
+    );
+    assert_eq!(outcome.steps, 3);
+    assert!(!outcome.success);
+    let level0: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 0 && t.kind == HindsightAction)
+        .collect();
+    // Missed goal, reward -1; only the step into the terminal state stops bootstrapping.
+    assert_eq!(
+        level0.iter().map(|t| t.terminal).collect::<Vec<_>>(),
+        [false, false, true]
+    );
+    assert!(level0.iter().all(|t| t.reward == -1.0));
+    // HER copies keep the flag of the attempt they copy (or are terminal because reached).
+    for t in got.iter().filter(|t| t.kind == HindsightGoal) {
+        let reached = t.next_state == t.goal;
+        assert_eq!(t.terminal, reached || t.next_state == [3.0], "{t:?}");
+    }
+    let level1: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 1 && t.kind == HindsightAction)
+        .collect();
+    assert_eq!(
+        *level1[0],
+        t(1, HindsightAction, 0.0, 3.0, -1.0, 3.0, FLAG, true)
+    );
 }

@@ -13,6 +13,8 @@ pub struct PointEnv {
     pub x: Vec<f32>,
     pub extent: f32,
     pub start: Option<Vec<f32>>,
+    /// The episode terminates once the first coordinate reaches this value.
+    pub terminate_at: Option<f32>,
 }
 
 impl PointEnv {
@@ -34,6 +36,7 @@ impl PointEnv {
             x: vec![0.0; dim],
             extent,
             start: None,
+            terminate_at: None,
         }
     }
 }
@@ -67,6 +70,10 @@ impl Env for PointEnv {
         for (x, a) in self.x.iter_mut().zip(action) {
             *x = (*x + a).clamp(-self.extent, self.extent);
         }
+    }
+
+    fn terminated(&self) -> bool {
+        self.terminate_at.is_some_and(|t| self.x[0] >= t)
     }
 
     fn project_end_goal(&self, state: &[f32], out: &mut [f32]) {

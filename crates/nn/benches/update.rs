@@ -1,0 +1,78 @@
+//! One full learner update (critic step + actor step) at the reference batch size and network
+//! (batch 1024, hidden [64, 64, 64]) for pendulum-like levels, and one greedy single-sample action.
+//! Target: an update within 1.5 ms on one core.
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use hac_core::{Batch, Bounds, LevelDims, Rng};
+use hac_nn::{LearnerConfig, LevelLearner};
+
+const BATCH: usize = 1024;
+
+fn config(action: usize) -> LearnerConfig {
+    LearnerConfig {
+        dims: LevelDims {
+            state: 3,
+            goal: 2,
+            action,
+        },
+        action_bounds: Bounds::symmetric(&vec![2.0; action]),
+        horizon: 20.0,
+        gamma: 0.98,
+        hidden: vec![64, 64, 64],
+        actor_lr: 1e-3,
+        critic_lr: 1e-3,
+        target_tau: None,
+    }
+}
+
+fn batch(dims: LevelDims, rng: &mut Rng) -> Batch {
+    let mut b = Batch::zeros(dims, BATCH);
+    let fields = [
+        &mut b.states,
+        &mut b.next_states,
+        &mut b.goals,
+        &mut b.actions,
+    ];
+    for field in fields {
+        field.iter_mut().for_each(|v| *v = rng.uniform(-1.0, 1.0));
+    }
+    for (r, t) in b.rewards.iter_mut().zip(&mut b.terminals) {
+        let reached = rng.bernoulli(0.2);
+        (*r, *t) = if reached { (0.0, 1.0) } else { (-1.0, 0.0) };
+    }
+    b
+}
+
+fn update(c: &mut Criterion) {
+    let mut group = c.benchmark_group("update");
+    for action in [1, 2] {
+        let mut rng = Rng::seed_from(1);
+        let mut learner = LevelLearner::new(config(action), &mut rng);
+        let batch = batch(learner.config().dims, &mut rng);
+        group.bench_function(
+            format!("batch1024_h64x3_state3_goal2_action{action}"),
+            |b| b.iter(|| black_box(learner.update(black_box(&batch)))),
+        );
+    }
+    group.finish();
+}
+
+fn act(c: &mut Criterion) {
+    // Rollouts hold a copy of the actor, as here.
+    let mut actor = LevelLearner::new(config(1), &mut Rng::seed_from(2))
+        .actor()
+        .clone();
+    let (state, goal) = ([0.1, -0.2, 0.3], [0.5, -0.5]);
+    let mut out = [0.0];
+    c.bench_function("act/h64x3_state3_goal2_action1", |b| {
+        b.iter(|| {
+            actor.act(black_box(&state), black_box(&goal), &mut out);
+            black_box(out[0])
+        })
+    });
+}
+
+criterion_group!(benches, update, act);
+criterion_main!(benches);

@@ -1,0 +1,636 @@
+//! One HAC level's learner: actor, critic, their optimisers, optional target networks, and the
+//! DDPG-style update of HAC.md ("Learning, per level").
+
+use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
+
+use crate::checkpoint::{TensorReader, TensorWriter};
+use crate::{Actor, Adam, Critic, MlpGrads, MlpWorkspace, NnError};
+
+/// Value of the `format` metadata entry of a learner checkpoint.
+const FORMAT: &str = "hac-nn/level-learner";
+
+/// What one level's learner needs to know.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnerConfig {
+    /// Widths of the level's state, goal and action (its output).
+    pub dims: LevelDims,
+    /// Bounds of the level's output: primitive actions at level 0, subgoals above.
+    pub action_bounds: Bounds,
+    /// H: the level's attempt budget, which bounds its values to `[-H, 0]`.
+    pub horizon: f32,
+    /// Discount factor.
+    pub gamma: f32,
+    /// Hidden layer widths, shared by actor and critic.
+    pub hidden: Vec<usize>,
+    /// Adam step size of the actor.
+    pub actor_lr: f32,
+    /// Adam step size of the critic.
+    pub critic_lr: f32,
+    /// Polyak rate of target networks; `None` (the reference's setting) bootstraps from the
+    /// online networks.
+    pub target_tau: Option<f32>,
+}
+
+impl LearnerConfig {
+    /// Level `level`'s configuration in a hierarchy described by `agent` on `spec`.
+    pub fn for_level(agent: &AgentConfig, spec: &EnvSpec, level: usize) -> Self {
+        Self {
+            dims: spec.level_dims(level, agent.levels),
+            action_bounds: spec.level_action_bounds(level).clone(),
+            horizon: agent.horizon as f32,
+            gamma: agent.gamma,
+            hidden: agent.hidden_layers.clone(),
+            actor_lr: agent.actor_lr,
+            critic_lr: agent.critic_lr,
+            target_tau: agent.target_tau,
+        }
+    }
+
+    fn actor_sizes(&self) -> Vec<usize> {
+        let d = self.dims;
+        [vec![d.state + d.goal], self.hidden.clone(), vec![d.action]].concat()
+    }
+
+    fn critic_sizes(&self) -> Vec<usize> {
+        let d = self.dims;
+        [
+            vec![d.state + d.goal + d.action],
+            self.hidden.clone(),
+            vec![1],
+        ]
+        .concat()
+    }
+}
+
+/// What one [`LevelLearner::update`] measured, each a mean over the batch.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct UpdateStats {
+    /// Squared error of `Q(s, g, a)` against the target, before the critic step.
+    pub critic_loss: f32,
+    /// `-Q(s, g, pi(s, g))` with the updated critic, before the actor step.
+    pub actor_loss: f32,
+    /// `Q(s, g, a)` before the critic step.
+    pub mean_q: f32,
+    /// The target `y`.
+    pub mean_target: f32,
+}
+
+/// Slowly-moving copies of actor and critic that the target `y` bootstraps from.
+#[derive(Debug, Clone)]
+struct Targets {
+    actor: Actor,
+    critic: Critic,
+    tau: f32,
+}
+
+/// A batch's fields, checked to hold `len` samples and cut to exactly that.
+struct Fields<'a> {
+    len: usize,
+    states: &'a [f32],
+    next_states: &'a [f32],
+    goals: &'a [f32],
+    actions: &'a [f32],
+    rewards: &'a [f32],
+    terminals: &'a [f32],
+}
+
+impl<'a> Fields<'a> {
+    fn new(batch: &'a Batch) -> Self {
+        let len = batch.len;
+        assert!(len > 0, "learner: empty batch");
+        let field = |values: &'a [f32], dim: usize, name: &str| {
+            assert!(
+                values.len() >= len * dim,
+                "learner: batch field `{name}` holds fewer than {len} samples"
+            );
+            &values[..len * dim]
+        };
+        let d = batch.dims;
+        Self {
+            len,
+            states: field(&batch.states, d.state, "states"),
+            next_states: field(&batch.next_states, d.state, "next_states"),
+            goals: field(&batch.goals, d.goal, "goals"),
+            actions: field(&batch.actions, d.action, "actions"),
+            rewards: field(&batch.rewards, 1, "rewards"),
+            terminals: field(&batch.terminals, 1, "terminals"),
+        }
+    }
+}
+
+/// Learns one level's actor and critic from minibatches. Owns every buffer an update needs, so
+/// updates at a steady batch size allocate nothing in this crate.
+#[derive(Debug, Clone)]
+pub struct LevelLearner {
+    config: LearnerConfig,
+    actor: Actor,
+    critic: Critic,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    targets: Option<Targets>,
+    actor_ws: MlpWorkspace,
+    critic_ws: MlpWorkspace,
+    actor_grads: MlpGrads,
+    critic_grads: MlpGrads,
+    /// The critic's regression targets for the current batch.
+    y: Vec<f32>,
+}
+
+impl LevelLearner {
+    /// A freshly initialised learner: the actor, then the critic, draw their weights from `rng`.
+    ///
+    /// Panics if the bounds do not match `dims.action`, a width is zero, or `horizon <= 0.067`.
+    pub fn new(config: LearnerConfig, rng: &mut Rng) -> Self {
+        let actor = Actor::new(config.dims, &config.action_bounds, &config.hidden, rng);
+        let critic = Critic::new(config.dims, config.horizon, &config.hidden, rng);
+        Self::assemble(config, actor, critic)
+    }
+
+    fn assemble(config: LearnerConfig, actor: Actor, critic: Critic) -> Self {
+        let lens = |m: &crate::Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
+        let targets = config.target_tau.map(|tau| Targets {
+            actor: actor.clone(),
+            critic: critic.clone(),
+            tau,
+        });
+        Self {
+            actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
+            critic_opt: Adam::new(config.critic_lr, lens(critic.mlp())),
+            actor_ws: MlpWorkspace::new(actor.mlp(), 0),
+            critic_ws: MlpWorkspace::new(critic.mlp(), 0),
+            actor_grads: MlpGrads::new(actor.mlp()),
+            critic_grads: MlpGrads::new(critic.mlp()),
+            y: Vec::new(),
+            targets,
+            config,
+            actor,
+            critic,
+        }
+    }
+
+    /// The configuration the learner was built from.
+    pub fn config(&self) -> &LearnerConfig {
+        &self.config
+    }
+
+    /// The current actor; clone it to hand the policy to a rollout or ship its weights.
+    pub fn actor(&self) -> &Actor {
+        &self.actor
+    }
+
+    /// The current critic.
+    pub fn critic(&self) -> &Critic {
+        &self.critic
+    }
+
+    /// Updates done so far.
+    pub fn updates(&self) -> u64 {
+        self.actor_opt.steps()
+    }
+
+    /// The greedy action `pi(state, goal)`, written into `out`.
+    pub fn act(&mut self, state: &[f32], goal: &[f32], out: &mut [f32]) {
+        self.actor.act(state, goal, out);
+    }
+
+    /// One critic step, then one actor step, on `batch`.
+    ///
+    /// Critic: regress `Q(s, g, a)` on `y = r + gamma (1 - terminal) Q(s', g, pi(s', g))` (target
+    /// networks when enabled), clipped to `[-H, 0]` and held constant. Actor: minimise
+    /// `-mean Q(s, g, pi(s, g))` under the just-updated critic, whose parameters stay fixed.
+    ///
+    /// Panics if the batch is empty, its dimensions are not this level's, or a field is short.
+    pub fn update(&mut self, batch: &Batch) -> UpdateStats {
+        assert_eq!(
+            batch.dims, self.config.dims,
+            "learner: batch dimensions differ from the level's"
+        );
+        let batch = Fields::new(batch);
+        self.actor_ws.set_batch(batch.len);
+        self.critic_ws.set_batch(batch.len);
+        self.y.resize(batch.len, 0.0);
+        let mean_target = self.set_targets(&batch);
+        let (critic_loss, mean_q) = self.critic_step(&batch);
+        let actor_loss = self.actor_step(&batch);
+        if let Some(t) = &mut self.targets {
+            t.actor.mlp_mut().polyak_toward(self.actor.mlp(), t.tau);
+            t.critic.mlp_mut().polyak_toward(self.critic.mlp(), t.tau);
+        }
+        UpdateStats {
+            critic_loss,
+            actor_loss,
+            mean_q,
+            mean_target,
+        }
+    }
+
+    /// Sets `self.y` to the clipped bootstrap targets; returns their mean.
+    fn set_targets(&mut self, batch: &Fields<'_>) -> f32 {
+        let (actor, critic) = match &self.targets {
+            Some(t) => (&t.actor, &t.critic),
+            None => (&self.actor, &self.critic),
+        };
+        actor.fill_input(&mut self.actor_ws, batch.next_states, batch.goals);
+        actor.forward_batch(&mut self.actor_ws);
+        critic.fill_state_goal(&mut self.critic_ws, batch.next_states, batch.goals);
+        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
+        actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
+        critic.forward_batch(&mut self.critic_ws);
+
+        let (h, gamma) = (self.config.horizon, self.config.gamma);
+        let mut sum = 0.0;
+        for (((y, &q), &r), &terminal) in self
+            .y
+            .iter_mut()
+            .zip(self.critic_ws.output())
+            .zip(batch.rewards)
+            .zip(batch.terminals)
+        {
+            *y = (r + gamma * (1.0 - terminal) * q).clamp(-h, 0.0);
+            sum += *y;
+        }
+        sum / batch.len as f32
+    }
+
+    /// One Adam step on the critic's mean squared error to `self.y`; returns that error and the
+    /// mean `Q`, both from before the step.
+    fn critic_step(&mut self, batch: &Fields<'_>) -> (f32, f32) {
+        let critic = &mut self.critic;
+        critic.fill_state_goal(&mut self.critic_ws, batch.states, batch.goals);
+        critic.fill_actions(&mut self.critic_ws, batch.actions);
+        critic.forward_batch(&mut self.critic_ws);
+        let inv_n = 1.0 / batch.len as f32;
+        let (mut sq_err_sum, mut q_sum) = (0.0, 0.0);
+        let (q, dq) = self.critic_ws.output_and_grad_mut();
+        for ((dq, &q), &y) in dq.iter_mut().zip(q).zip(&self.y) {
+            let err = q - y;
+            sq_err_sum += err * err;
+            q_sum += q;
+            *dq = 2.0 * err * inv_n;
+        }
+        critic.backward_batch(&mut self.critic_ws, Some(&mut self.critic_grads), false);
+        let grads = self.critic_grads.tensors();
+        self.critic_opt
+            .step(critic.mlp_mut().tensors_mut().zip(grads));
+        (sq_err_sum * inv_n, q_sum * inv_n)
+    }
+
+    /// One Adam step on the actor's loss `-mean Q(s, g, pi(s, g))`, whose gradient reaches the
+    /// actor through the critic's action input; returns the loss from before the step.
+    ///
+    /// Runs after [`LevelLearner::critic_step`], whose state and goal rows it reuses.
+    fn actor_step(&mut self, batch: &Fields<'_>) -> f32 {
+        let (actor, critic) = (&mut self.actor, &self.critic);
+        actor.fill_input(&mut self.actor_ws, batch.states, batch.goals);
+        actor.forward_batch(&mut self.actor_ws);
+        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
+        actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
+        critic.forward_batch(&mut self.critic_ws);
+        let inv_n = 1.0 / batch.len as f32;
+        let mut q_sum = 0.0;
+        let (q, dq) = self.critic_ws.output_and_grad_mut();
+        for (dq, &q) in dq.iter_mut().zip(q) {
+            q_sum += q;
+            *dq = -inv_n;
+        }
+        critic.backward_batch(&mut self.critic_ws, None, true);
+        self.actor_ws
+            .output_grad_mut()
+            .copy_from_slice(self.critic_ws.input_grad());
+        actor.backward_batch(&mut self.actor_ws, &mut self.actor_grads);
+        let grads = self.actor_grads.tensors();
+        self.actor_opt
+            .step(actor.mlp_mut().tensors_mut().zip(grads));
+        -q_sum * inv_n
+    }
+
+    /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in
+    /// [`Actor::to_safetensors`]), critic (`critic.*`), both optimisers (`actor_adam.*`,
+    /// `critic_adam.*`) and, when enabled, the target networks (`target_actor.*`,
+    /// `target_critic.*`).
+    pub fn to_safetensors(&self) -> Vec<u8> {
+        let mut out = TensorWriter::default();
+        out.meta("format".into(), FORMAT);
+        self.actor.write("actor.", &mut out);
+        self.critic.write("critic.", &mut out);
+        self.actor_opt.write("actor_adam.", &mut out);
+        self.critic_opt.write("critic_adam.", &mut out);
+        if let Some(t) = &self.targets {
+            t.actor.write("target_actor.", &mut out);
+            t.critic.write("target_critic.", &mut out);
+        }
+        out.finish()
+    }
+
+    /// Restores a learner saved by [`LevelLearner::to_safetensors`]. The file's networks must
+    /// have the architecture, bounds and horizon that `config` describes; its hyperparameters
+    /// (learning rates, gamma, tau) come from `config`.
+    pub fn from_safetensors(config: LearnerConfig, bytes: &[u8]) -> Result<Self, NnError> {
+        let file = TensorReader::new(bytes)?;
+        let format: String = file.meta("format")?;
+        if format != FORMAT {
+            return Err(NnError::Metadata {
+                key: "format".into(),
+                reason: format!("expected `{FORMAT}`, got `{format}`"),
+            });
+        }
+        let actor = Actor::read("actor.", &file)?;
+        let critic = Critic::read("critic.", &file)?;
+        check_matches(&config, &actor, &critic)?;
+        let mut learner = Self::assemble(config, actor, critic);
+        learner.actor_opt.read("actor_adam.", &file)?;
+        learner.critic_opt.read("critic_adam.", &file)?;
+        if let Some(t) = &mut learner.targets {
+            t.actor = Actor::read("target_actor.", &file)?;
+            t.critic = Critic::read("target_critic.", &file)?;
+            check_matches(&learner.config, &t.actor, &t.critic)?;
+        }
+        Ok(learner)
+    }
+}
+
+/// Whether networks read from a file are the ones `config` describes.
+fn check_matches(config: &LearnerConfig, actor: &Actor, critic: &Critic) -> Result<(), NnError> {
+    let mismatch = |what: &str, expected: String, found: String| {
+        Err(NnError::Mismatch {
+            what: what.into(),
+            expected,
+            found,
+        })
+    };
+    if actor.mlp().sizes() != config.actor_sizes() || actor.dims() != config.dims {
+        return mismatch(
+            "actor layer widths",
+            format!("{:?}", config.actor_sizes()),
+            format!("{:?}", actor.mlp().sizes()),
+        );
+    }
+    if critic.mlp().sizes() != config.critic_sizes() || critic.dims() != config.dims {
+        return mismatch(
+            "critic layer widths",
+            format!("{:?}", config.critic_sizes()),
+            format!("{:?}", critic.mlp().sizes()),
+        );
+    }
+    let b = &config.action_bounds;
+    let scale: Vec<f32> = (0..b.dim()).map(|d| b.half_range(d)).collect();
+    let offset: Vec<f32> = (0..b.dim()).map(|d| b.offset(d)).collect();
+    if actor.output_scale() != scale || actor.output_offset() != offset {
+        return mismatch(
+            "actor output (scale, offset)",
+            format!("({scale:?}, {offset:?})"),
+            format!("({:?}, {:?})", actor.output_scale(), actor.output_offset()),
+        );
+    }
+    if critic.horizon() != config.horizon {
+        return mismatch(
+            "critic horizon",
+            config.horizon.to_string(),
+            critic.horizon().to_string(),
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::uniform_vec;
+
+    const DIMS: LevelDims = LevelDims {
+        state: 3,
+        goal: 2,
+        action: 2,
+    };
+
+    fn config(target_tau: Option<f32>) -> LearnerConfig {
+        LearnerConfig {
+            dims: DIMS,
+            action_bounds: Bounds::new(vec![-2.0, 0.0], vec![2.0, 1.0]),
+            horizon: 10.0,
+            gamma: 0.98,
+            hidden: vec![32, 32],
+            actor_lr: 1e-3,
+            critic_lr: 1e-3,
+            target_tau,
+        }
+    }
+
+    /// A batch of HAC-like transitions whose outcome is a function of the goal, so that a critic
+    /// can learn it: the -H penalty, or reward 0 and terminal, or reward -1.
+    fn random_batch(rng: &mut Rng, len: usize) -> Batch {
+        let mut b = Batch::zeros(DIMS, len);
+        b.states = uniform_vec(rng, DIMS.state * len, 1.0);
+        b.next_states = uniform_vec(rng, DIMS.state * len, 1.0);
+        b.goals = uniform_vec(rng, DIMS.goal * len, 1.0);
+        b.actions = uniform_vec(rng, DIMS.action * len, 1.0);
+        for (j, g) in b.goals.chunks_exact(DIMS.goal).enumerate() {
+            (b.rewards[j], b.terminals[j]) = if g[1] < -0.8 {
+                (-10.0, 1.0)
+            } else if g[0] > 0.4 {
+                (0.0, 1.0)
+            } else {
+                (-1.0, 0.0)
+            };
+        }
+        b
+    }
+
+    #[test]
+    fn critic_loss_falls_on_a_fixed_batch() {
+        let mut rng = Rng::seed_from(31);
+        let mut learner = LevelLearner::new(config(None), &mut rng);
+        let batch = random_batch(&mut rng, 256);
+        let first = learner.update(&batch);
+        let mut last = first;
+        for _ in 0..300 {
+            last = learner.update(&batch);
+        }
+        assert!(
+            last.critic_loss < 0.2 * first.critic_loss,
+            "critic loss {} -> {}",
+            first.critic_loss,
+            last.critic_loss
+        );
+        // The untrained critic is optimistic; the targets are clipped to [-H, 0].
+        assert!((first.mean_q + 0.067).abs() < 0.01, "{first:?}");
+        assert!((-10.0..=0.0).contains(&last.mean_target));
+        assert_eq!(learner.updates(), 301);
+    }
+
+    /// `mean Q(s, g, pi(s, g))` over the batch, with the learner's current actor and critic.
+    fn policy_value(learner: &LevelLearner, batch: &Batch) -> f32 {
+        let (actor, critic) = (&learner.actor, &learner.critic);
+        let mut actor_ws = MlpWorkspace::new(actor.mlp(), batch.len);
+        let mut critic_ws = MlpWorkspace::new(critic.mlp(), batch.len);
+        actor.fill_input(&mut actor_ws, &batch.states, &batch.goals);
+        actor.forward_batch(&mut actor_ws);
+        critic.fill_state_goal(&mut critic_ws, &batch.states, &batch.goals);
+        let rows = critic.mlp().input_dim();
+        actor.write_actions(
+            &actor_ws,
+            critic_ws.input_mut(),
+            rows,
+            critic.action_rows().start,
+        );
+        critic.forward_batch(&mut critic_ws);
+        critic_ws.output().iter().sum::<f32>() / batch.len as f32
+    }
+
+    #[test]
+    fn actor_step_raises_the_updated_critics_value() {
+        let mut rng = Rng::seed_from(36);
+        let mut learner = LevelLearner::new(config(None), &mut rng);
+        let batch = random_batch(&mut rng, 128);
+        for _ in 0..20 {
+            learner.update(&batch);
+        }
+        let stats = learner.update(&batch);
+        // `actor_loss` was measured with the critic the actor step used (the final one), so the
+        // (small, first-order) actor step must have raised this value.
+        let value = policy_value(&learner, &batch);
+        assert!(
+            value > -stats.actor_loss,
+            "mean Q(s, g, pi(s, g)) went from {} to {value}",
+            -stats.actor_loss
+        );
+    }
+
+    #[test]
+    fn actor_climbs_the_critic() {
+        // A one-step task: every transition is terminal with reward -2 - |a - c|^2, so the best
+        // action is c whatever the state and goal. (The -2 keeps values away from 0, where the
+        // critic's sigmoid is flat and learns slowly.)
+        let best = [1.0, 0.25];
+        let mut rng = Rng::seed_from(32);
+        // A slower actor lets the critic learn the curvature before the actor commits to a
+        // direction (a saturated tanh would stop it there).
+        let slow_actor = LearnerConfig {
+            actor_lr: 1e-4,
+            ..config(None)
+        };
+        let mut learner = LevelLearner::new(slow_actor, &mut rng);
+        // The state and goal play no part in this task: leaving them at zero spares the critic
+        // learning to ignore them.
+        let mut batch = Batch::zeros(DIMS, 256);
+        for _ in 0..1000 {
+            for (j, a) in batch.actions.chunks_exact_mut(2).enumerate() {
+                a[0] = rng.uniform(-2.0, 2.0);
+                a[1] = rng.uniform(0.0, 1.0);
+                let sq_dist: f32 = a.iter().zip(best).map(|(a, c)| (a - c).powi(2)).sum();
+                batch.rewards[j] = -2.0 - sq_dist;
+                batch.terminals[j] = 1.0;
+            }
+            learner.update(&batch);
+        }
+
+        let mut action = [0.0; 2];
+        learner.act(&[0.0; 3], &[0.0; 2], &mut action);
+        let dist = action
+            .iter()
+            .zip(best)
+            .map(|(a, c)| (a - c).powi(2))
+            .sum::<f32>()
+            .sqrt();
+        assert!(dist < 0.3, "action {action:?}, best {best:?}");
+    }
+
+    #[test]
+    fn target_networks_follow_by_polyak_averaging() {
+        let mut rng = Rng::seed_from(33);
+        let tau = 0.1;
+        let mut learner = LevelLearner::new(config(Some(tau)), &mut rng);
+        let before = learner.critic.mlp().clone();
+        learner.update(&random_batch(&mut rng, 64));
+        let targets = learner.targets.as_ref().expect("targets enabled");
+        let after = learner.critic.mlp();
+        for ((t, old), new) in targets
+            .critic
+            .mlp()
+            .tensors()
+            .zip(before.tensors())
+            .zip(after.tensors())
+        {
+            for ((t, old), new) in t.iter().zip(old).zip(new) {
+                assert!((t - (old + tau * (new - old))).abs() < 1e-6);
+            }
+        }
+        assert_ne!(targets.actor.mlp(), learner.actor.mlp());
+    }
+
+    #[test]
+    fn same_seed_gives_bit_identical_learners() {
+        for tau in [None, Some(0.05)] {
+            let run = |seed: u64| {
+                let mut learner = LevelLearner::new(config(tau), &mut Rng::seed_from(seed));
+                let mut data = Rng::seed_from(99);
+                for _ in 0..5 {
+                    learner.update(&random_batch(&mut data, 128));
+                }
+                learner.to_safetensors()
+            };
+            assert_eq!(run(7), run(7));
+            assert_ne!(run(7), run(8));
+        }
+    }
+
+    #[test]
+    fn checkpoint_round_trip_continues_identically() {
+        let mut rng = Rng::seed_from(34);
+        let mut learner = LevelLearner::new(config(Some(0.05)), &mut rng);
+        for _ in 0..3 {
+            learner.update(&random_batch(&mut rng, 64));
+        }
+        let bytes = learner.to_safetensors();
+        let mut restored = LevelLearner::from_safetensors(config(Some(0.05)), &bytes).unwrap();
+        assert_eq!(restored.to_safetensors(), bytes);
+        for _ in 0..2 {
+            let batch = random_batch(&mut rng, 64);
+            assert_eq!(learner.update(&batch), restored.update(&batch));
+        }
+        assert_eq!(learner.to_safetensors(), restored.to_safetensors());
+    }
+
+    #[test]
+    fn checkpoint_for_another_level_is_rejected() {
+        let mut rng = Rng::seed_from(35);
+        let bytes = LevelLearner::new(config(None), &mut rng).to_safetensors();
+
+        let wider = LearnerConfig {
+            hidden: vec![32, 48],
+            ..config(None)
+        };
+        let other_bounds = LearnerConfig {
+            action_bounds: Bounds::symmetric(&[1.0, 1.0]),
+            ..config(None)
+        };
+        let other_horizon = LearnerConfig {
+            horizon: 5.0,
+            ..config(None)
+        };
+        for (what, cfg) in [
+            ("hidden", wider),
+            ("bounds", other_bounds),
+            ("horizon", other_horizon),
+        ] {
+            let err = LevelLearner::from_safetensors(cfg, &bytes).expect_err(what);
+            assert!(matches!(err, NnError::Mismatch { .. }), "{what}: {err}");
+        }
+        // Target networks asked for but not saved.
+        assert!(matches!(
+            LevelLearner::from_safetensors(config(Some(0.05)), &bytes),
+            Err(NnError::MissingTensor(_))
+        ));
+        assert!(matches!(
+            LevelLearner::from_safetensors(config(None), &bytes[..bytes.len() / 2]),
+            Err(NnError::Format(_))
+        ));
+        let actor_file = LevelLearner::new(config(None), &mut rng)
+            .actor()
+            .to_safetensors();
+        assert!(matches!(
+            LevelLearner::from_safetensors(config(None), &actor_file),
+            Err(NnError::Metadata { .. })
+        ));
+    }
+}

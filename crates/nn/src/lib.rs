@@ -1,0 +1,34 @@
+//! HAC networks: the actor and critic of every level, how they learn, and how they are saved.
+//!
+//! - [`mlp`]: [`Mlp`], a dense ReLU network evaluated and differentiated on whole batches (one
+//!   matrix product per layer and pass), with its reusable [`MlpWorkspace`] and [`MlpGrads`].
+//! - [`adam`]: the [`Adam`] optimiser, one moment pair per parameter tensor.
+//! - [`actor`]: [`Actor`], `pi(s, g)` squashed into the level's bounds; cheap single-sample
+//!   [`Actor::act`] for rollouts, safetensors round trip for shipping weights to remote actors.
+//! - [`critic`]: [`Critic`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
+//! - [`learner`]: [`LevelLearner`], one level's DDPG-style update (critic step, then actor step
+//!   through the updated critic), optional target networks, whole-state checkpoints.
+//! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
+//!   the thin-matrix loops; `checkpoint`: safetensors reading and writing.
+//!
+//! Matrices are column-major with one sample per column, as in [`hac_core::Batch`].
+
+#![warn(missing_docs)]
+
+pub mod actor;
+pub mod adam;
+mod checkpoint;
+pub mod critic;
+mod error;
+mod kernels;
+pub mod learner;
+pub mod mlp;
+#[cfg(test)]
+mod testing;
+
+pub use actor::Actor;
+pub use adam::Adam;
+pub use critic::Critic;
+pub use error::NnError;
+pub use learner::{LearnerConfig, LevelLearner, UpdateStats};
+pub use mlp::{Mlp, MlpGrads, MlpWorkspace};

@@ -1,0 +1,276 @@
+//! The run configuration: environment defaults, then a TOML file, then `HAC_*` environment
+//! variables, then command-line flags. Unknown keys and invalid values are rejected by name.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use hac_core::AgentConfig;
+use serde::{Deserialize, Serialize};
+
+/// Everything that defines a training run; written to `<out>/config.toml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// Built-in environment name (`hac train --help` lists them).
+    pub env: String,
+    /// Number of levels (1 = flat DDPG + HER).
+    pub levels: usize,
+    /// Seed of every random stream.
+    pub seed: u64,
+    /// Training episodes in total.
+    pub episodes: u64,
+    /// Stop once a test round reaches this success rate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_at: Option<f32>,
+    /// Threads for per-level updates (1 = single-threaded, bit-reproducible either way).
+    pub threads: usize,
+    /// Replay shards per level.
+    pub replay_shards: usize,
+    /// HAC hyperparameters (defaults: the environment's, for this number of levels).
+    pub agent: AgentConfig,
+}
+
+/// The top level of a config file: every key optional.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileConfig {
+    env: Option<String>,
+    levels: Option<usize>,
+    seed: Option<u64>,
+    episodes: Option<u64>,
+    stop_at: Option<f32>,
+    threads: Option<usize>,
+    replay_shards: Option<usize>,
+    agent: Option<toml::Table>,
+}
+
+/// Values given on the command line or through `HAC_*` variables (clap reads both).
+#[derive(Debug, Default)]
+pub struct Overrides {
+    pub env: Option<String>,
+    pub levels: Option<usize>,
+    pub seed: Option<u64>,
+    pub episodes: Option<u64>,
+    pub stop_at: Option<f32>,
+    pub threads: Option<usize>,
+    pub replay_shards: Option<usize>,
+    /// `KEY=VALUE` agent overrides, VALUE in TOML syntax.
+    pub set: Vec<String>,
+}
+
+pub const DEFAULT_ENV: &str = "pendulum";
+pub const DEFAULT_LEVELS: usize = 2;
+pub const DEFAULT_EPISODES: u64 = 1000;
+
+/// Resolves the run configuration from all sources, validating it completely.
+pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
+    let file_config = match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading config file {}", path.display()))?;
+            toml::from_str::<FileConfig>(&text)
+                .with_context(|| format!("in config file {}", path.display()))?
+        }
+        None => FileConfig::default(),
+    };
+    let env_name = flags
+        .env
+        .or(file_config.env)
+        .unwrap_or_else(|| DEFAULT_ENV.to_string());
+    let env = hac_envs::make(&env_name)?;
+    let levels = flags
+        .levels
+        .or(file_config.levels)
+        .unwrap_or(DEFAULT_LEVELS);
+    if levels == 0 || levels > 8 {
+        bail!("invalid value for `levels`: {levels} (must be 1 to 8)");
+    }
+
+    // Agent: environment defaults, then the file's [agent] table, then HAC_AGENT_* variables,
+    // then --set flags; deserialising the merged table rejects unknown keys by name.
+    let mut agent =
+        toml::Table::try_from(env.default_config(levels)).context("encoding default config")?;
+    if let Some(table) = file_config.agent {
+        for (key, value) in table {
+            agent.insert(key, value);
+        }
+    }
+    let mut sets: Vec<(String, String)> = std::env::vars()
+        .filter_map(|(k, v)| {
+            k.strip_prefix("HAC_AGENT_")
+                .map(|key| (key.to_lowercase(), v))
+        })
+        .collect();
+    sets.sort();
+    for kv in &flags.set {
+        let (key, value) = kv
+            .split_once('=')
+            .with_context(|| format!("--set expects KEY=VALUE, got `{kv}`"))?;
+        sets.push((
+            key.trim().trim_start_matches("agent.").to_string(),
+            value.trim().to_string(),
+        ));
+    }
+    for (key, value) in sets {
+        agent.insert(key.clone(), parse_value(&key, &value)?);
+    }
+    let agent: AgentConfig = agent.try_into().context("in the agent configuration")?;
+    // Keep the level count in one place: the run's.
+    if agent.levels != levels {
+        bail!("invalid value for `agent.levels`: set `levels` at the top level instead");
+    }
+    let spec = env.spec();
+    agent.validate(spec.action_dim(), spec.subgoal_dim())?;
+
+    let config = RunConfig {
+        env: env_name,
+        levels,
+        seed: flags.seed.or(file_config.seed).unwrap_or(0),
+        episodes: flags
+            .episodes
+            .or(file_config.episodes)
+            .unwrap_or(DEFAULT_EPISODES),
+        stop_at: flags.stop_at.or(file_config.stop_at),
+        threads: flags.threads.or(file_config.threads).unwrap_or(2),
+        replay_shards: flags
+            .replay_shards
+            .or(file_config.replay_shards)
+            .unwrap_or(1),
+        agent,
+    };
+    if config.threads == 0 {
+        bail!("invalid value for `threads`: must be at least 1");
+    }
+    if config.replay_shards == 0 {
+        bail!("invalid value for `replay_shards`: must be at least 1");
+    }
+    if let Some(s) = config.stop_at {
+        if !(0.0..=1.0).contains(&s) {
+            bail!("invalid value for `stop_at`: {s} (must be a success rate in [0, 1])");
+        }
+    }
+    Ok(config)
+}
+
+/// Parses one override's value as TOML (`10`, `0.5`, `[64, 64]`, `"text"`).
+fn parse_value(key: &str, value: &str) -> Result<toml::Value> {
+    let table: toml::Table = toml::from_str(&format!("v = {value}"))
+        .with_context(|| format!("invalid value for `{key}`: `{value}` is not a TOML value"))?;
+    Ok(table["v"].clone())
+}
+
+/// Reads a run directory's `config.toml`.
+pub fn load_run(dir: &Path) -> Result<RunConfig> {
+    let path = dir.join("config.toml");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("reading {} (is this a run directory?)", path.display()))?;
+    toml::from_str(&text).with_context(|| format!("in {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(text: &str) -> tempfile_like::TempFile {
+        tempfile_like::TempFile::new(text)
+    }
+
+    /// A minimal temp file helper (std only).
+    mod tempfile_like {
+        pub struct TempFile(pub std::path::PathBuf);
+        impl TempFile {
+            pub fn new(text: &str) -> Self {
+                static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+                let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let path = std::env::temp_dir()
+                    .join(format!("hac-config-test-{}-{n}.toml", std::process::id()));
+                std::fs::write(&path, text).unwrap();
+                Self(path)
+            }
+        }
+        impl Drop for TempFile {
+            fn drop(&mut self) {
+                let _ = std::fs::remove_file(&self.0);
+            }
+        }
+    }
+
+    #[test]
+    fn defaults_come_from_the_environment() {
+        let c = resolve(
+            None,
+            Overrides {
+                env: Some("pendulum".into()),
+                levels: Some(3),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(c.agent.horizon, 10);
+        assert_eq!(c.agent.levels, 3);
+    }
+
+    #[test]
+    fn file_then_flags() {
+        let f = write("env = \"pendulum\"\nlevels = 2\nseed = 5\n[agent]\nhorizon = 7\n");
+        let c = resolve(
+            Some(&f.0),
+            Overrides {
+                seed: Some(9),
+                set: vec!["gamma=0.9".into()],
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!((c.env.as_str(), c.levels, c.seed), ("pendulum", 2, 9));
+        assert_eq!(c.agent.horizon, 7);
+        assert_eq!(c.agent.gamma, 0.9);
+    }
+
+    #[test]
+    fn unknown_and_invalid_keys_are_named() {
+        let f = write("levls = 2\n");
+        let e = format!(
+            "{:#}",
+            resolve(Some(&f.0), Overrides::default()).unwrap_err()
+        );
+        assert!(e.contains("levls"), "{e}");
+        let f = write("[agent]\nhorizn = 2\n");
+        let e = format!(
+            "{:#}",
+            resolve(Some(&f.0), Overrides::default()).unwrap_err()
+        );
+        assert!(e.contains("horizn"), "{e}");
+        let e = format!(
+            "{:#}",
+            resolve(
+                None,
+                Overrides {
+                    set: vec!["gamma=2".into()],
+                    ..Default::default()
+                }
+            )
+            .unwrap_err()
+        );
+        assert!(e.contains("gamma"), "{e}");
+        let e = format!(
+            "{:#}",
+            resolve(
+                None,
+                Overrides {
+                    env: Some("nope".into()),
+                    ..Default::default()
+                }
+            )
+            .unwrap_err()
+        );
+        assert!(e.contains("nope") && e.contains("pendulum"), "{e}");
+    }
+
+    #[test]
+    fn resolved_config_round_trips_through_toml() {
+        let c = resolve(None, Overrides::default()).unwrap();
+        let text = toml::to_string(&c).unwrap();
+        assert_eq!(toml::from_str::<RunConfig>(&text).unwrap(), c);
+    }
+}

@@ -1,0 +1,245 @@
+//! `hac`: train and evaluate Hierarchical Actor-Critic agents.
+//!
+//! - `hac train`: the embedded default: rollouts, replay and learning in one process, with a
+//!   progress line per test round; writes a run directory (see [`run_dir`]).
+//! - `hac eval`: greedy test episodes of a trained run.
+//!
+//! Modules: [`config`] resolves the run configuration from every source, [`plot`] draws SVG
+//! learning curves, [`run_dir`] owns the layout of a run directory.
+
+mod config;
+mod plot;
+mod run_dir;
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use hac_agent::{Agent, RoundReport, Trainer, TrainerOptions};
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "hac",
+    version,
+    about = "Hierarchical Actor-Critic (Levy et al., ICLR 2019): train and evaluate multi-level agents"
+)]
+struct Cli {
+    /// Log format on stderr (filter with RUST_LOG, default `info`).
+    #[arg(long, global = true, value_enum, default_value_t = LogFormat::Plain, env = "HAC_LOG_FORMAT")]
+    log_format: LogFormat,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum LogFormat {
+    Plain,
+    Json,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Train an agent in one process (the reference schedule: training episodes, then greedy test
+    /// rounds), writing the learning curve, plot, config and weights to the run directory.
+    Train(TrainArgs),
+    /// Run greedy test episodes with a trained run's weights and print the success rate.
+    Eval(EvalArgs),
+}
+
+#[derive(Debug, Args)]
+struct TrainArgs {
+    /// Built-in environment: pendulum, mountain-car [default: pendulum].
+    #[arg(long, env = "HAC_ENV")]
+    env: Option<String>,
+    /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].
+    #[arg(long, env = "HAC_LEVELS")]
+    levels: Option<usize>,
+    /// Seed of every random stream [default: 0].
+    #[arg(long, env = "HAC_SEED")]
+    seed: Option<u64>,
+    /// Training episodes in total [default: 1000].
+    #[arg(long, env = "HAC_EPISODES")]
+    episodes: Option<u64>,
+    /// Stop early once a test round reaches this success rate (e.g. 0.9).
+    #[arg(long, env = "HAC_STOP_AT")]
+    stop_at: Option<f32>,
+    /// Threads for per-level updates; results are identical for any value [default: 2].
+    #[arg(long, env = "HAC_THREADS")]
+    threads: Option<usize>,
+    /// Replay shards per level [default: 1].
+    #[arg(long, env = "HAC_REPLAY_SHARDS")]
+    replay_shards: Option<usize>,
+    /// TOML config file (top-level keys as these flags, hyperparameters under [agent]).
+    #[arg(long, env = "HAC_CONFIG")]
+    config: Option<PathBuf>,
+    /// Override one agent hyperparameter, VALUE in TOML syntax (repeatable), e.g.
+    /// `--set horizon=20 --set hidden_layers=[64,64]`. Also read from HAC_AGENT_<KEY>.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// Run directory [default: runs/<env>-<levels>l-seed<seed>].
+    #[arg(long, env = "HAC_OUT")]
+    out: Option<PathBuf>,
+    /// Print the resolved configuration as TOML and exit.
+    #[arg(long)]
+    print_config: bool,
+}
+
+#[derive(Debug, Args)]
+struct EvalArgs {
+    /// A run directory written by `hac train`.
+    #[arg(long)]
+    run: PathBuf,
+    /// Greedy test episodes [default: the run's test_episodes].
+    #[arg(long)]
+    episodes: Option<usize>,
+    /// Seed of the test episodes' initial states and goals.
+    #[arg(long, default_value_t = 12345)]
+    seed: u64,
+    /// Print the result as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Also print one JSON line per episode (success, primitive steps, final state).
+    #[arg(long)]
+    per_episode: bool,
+}
+
+fn main() {
+    let cli = Cli::parse();
+    init_tracing(cli.log_format);
+    let result = match cli.command {
+        Command::Train(args) => train(args),
+        Command::Eval(args) => eval(args),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn init_tracing(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    match format {
+        LogFormat::Plain => builder.init(),
+        LogFormat::Json => builder.json().init(),
+    }
+}
+
+fn train(args: TrainArgs) -> Result<()> {
+    let run = config::resolve(
+        args.config.as_deref(),
+        config::Overrides {
+            env: args.env,
+            levels: args.levels,
+            seed: args.seed,
+            episodes: args.episodes,
+            stop_at: args.stop_at,
+            threads: args.threads,
+            replay_shards: args.replay_shards,
+            set: args.set,
+        },
+    )?;
+    if args.print_config {
+        print!("{}", toml::to_string(&run)?);
+        return Ok(());
+    }
+    let out = args.out.unwrap_or_else(|| {
+        PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
+    });
+    let mut dir = run_dir::RunDir::create(&out, &run)?;
+    let env = hac_envs::make(&run.env)?;
+    let options = TrainerOptions {
+        seed: run.seed,
+        threads: run.threads,
+        replay_shards: run.replay_shards,
+    };
+    let mut trainer = Trainer::new(env, run.agent.clone(), options)?;
+    println!(
+        "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
+        run.env,
+        run.levels,
+        if run.levels == 1 { "" } else { "s" },
+        run.agent.horizon,
+        run.seed,
+        run.episodes,
+        run.agent.exploration_episodes,
+        out.display()
+    );
+    let started = Instant::now();
+    let mut write_error = None;
+    let curve = trainer.run(run.episodes, run.stop_at, |report: &RoundReport| {
+        println!(
+            "round {:>3} | episodes {:>5} | success {:>5.1}% | env steps/s {:>9.0} | updates/s {:>7.0} | elapsed {:>7.1}s",
+            report.round,
+            report.episodes,
+            100.0 * report.success_rate,
+            report.env_steps_per_s,
+            report.updates_per_s,
+            report.elapsed_s
+        );
+        if let Err(e) = dir.record(report) {
+            write_error.get_or_insert(e);
+        }
+    });
+    if let Some(e) = write_error {
+        return Err(e);
+    }
+    let summary = dir.finish(trainer.agent(), &curve, started.elapsed().as_secs_f64())?;
+    println!(
+        "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
+        summary.episodes,
+        summary.wall_time_s,
+        100.0 * summary.final_success,
+        100.0 * summary.best_success,
+        summary
+            .episodes_to_90
+            .map_or("never".to_string(), |e| format!("after {e} episodes")),
+        out.display()
+    );
+    Ok(())
+}
+
+fn eval(args: EvalArgs) -> Result<()> {
+    let run = config::load_run(&args.run)?;
+    let mut env = hac_envs::make(&run.env)?;
+    let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+        .context("loading the run's weights")?;
+    let episodes = args.episodes.unwrap_or(run.agent.test_episodes);
+    let mut index = 0usize;
+    let success = hac_agent::evaluate(
+        env.as_mut(),
+        &mut agent,
+        &run.agent,
+        episodes,
+        args.seed,
+        |outcome, state| {
+            if args.per_episode {
+                println!(
+                    "{}",
+                    serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "final_state": state})
+                );
+            }
+            index += 1;
+        },
+    );
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({"run": args.run, "env": run.env, "levels": run.levels, "episodes": episodes, "success_rate": success})
+        );
+    } else {
+        println!(
+            "{}: {} with {} levels: success {:.1}% over {} greedy test episodes",
+            args.run.display(),
+            run.env,
+            run.levels,
+            100.0 * success,
+            episodes
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,132 @@
+//! The layout of a run directory, written by `hac train`:
+//!
+//! - `config.toml`: the resolved configuration (feed it back with `--config` to repeat the run);
+//! - `curve.csv`: one row per test round (success rate, speeds, per-level losses), appended live;
+//! - `curve.svg`: the learning curve, redrawn after every round;
+//! - `weights/level<i>.safetensors`: each level's actor and critic, at the end of training;
+//! - `summary.json`: headline figures (final and best success, episodes to 50% and 90%, time).
+
+use std::fs::File;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use hac_agent::{Agent, RoundReport};
+use serde::Serialize;
+
+use crate::config::RunConfig;
+use crate::plot;
+
+pub fn weights_dir(run: &Path) -> PathBuf {
+    run.join("weights")
+}
+
+/// Headline figures of a finished run.
+#[derive(Debug, Serialize)]
+pub struct Summary {
+    pub env: String,
+    pub levels: usize,
+    pub seed: u64,
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub rounds: usize,
+    pub final_success: f32,
+    pub best_success: f32,
+    pub episodes_to_50: Option<u64>,
+    pub episodes_to_90: Option<u64>,
+    pub wall_time_s: f64,
+}
+
+#[derive(Debug)]
+pub struct RunDir {
+    path: PathBuf,
+    config: RunConfig,
+    csv: File,
+    curve: Vec<(f64, f64)>,
+}
+
+impl RunDir {
+    /// Creates (or reuses) the directory and writes `config.toml` and the CSV header.
+    pub fn create(path: &Path, config: &RunConfig) -> Result<Self> {
+        std::fs::create_dir_all(path)
+            .with_context(|| format!("creating run directory {}", path.display()))?;
+        write_file(
+            &path.join("config.toml"),
+            toml::to_string(config)?.as_bytes(),
+        )?;
+        let csv_path = path.join("curve.csv");
+        let mut csv =
+            File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?;
+        writeln!(csv, "{}", RoundReport::csv_header(config.levels))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            config: config.clone(),
+            csv,
+            curve: Vec::new(),
+        })
+    }
+
+    /// Appends one test round to the CSV and redraws the plot.
+    pub fn record(&mut self, report: &RoundReport) -> Result<()> {
+        writeln!(self.csv, "{}", report.csv_row())?;
+        self.csv.flush()?;
+        self.curve
+            .push((report.episodes as f64, report.success_rate as f64));
+        let title = format!(
+            "{}, {} levels, seed {}",
+            self.config.env, self.config.levels, self.config.seed
+        );
+        let svg = plot::success_chart(
+            &title,
+            "training episodes",
+            &[plot::Series {
+                label: format!("{} levels", self.config.levels),
+                points: self.curve.clone(),
+                band: None,
+            }],
+        );
+        write_file(&self.path.join("curve.svg"), svg.as_bytes())
+    }
+
+    /// Saves the weights and the summary.
+    pub fn finish(
+        &self,
+        agent: &Agent,
+        curve: &[RoundReport],
+        wall_time_s: f64,
+    ) -> Result<Summary> {
+        agent.save(&weights_dir(&self.path))?;
+        let first_at = |target: f32| {
+            curve
+                .iter()
+                .find(|r| r.success_rate >= target)
+                .map(|r| r.episodes)
+        };
+        let last = curve.last();
+        let summary = Summary {
+            env: self.config.env.clone(),
+            levels: self.config.levels,
+            seed: self.config.seed,
+            episodes: last.map_or(0, |r| r.episodes),
+            env_steps: last.map_or(0, |r| r.env_steps),
+            rounds: curve.len(),
+            final_success: last.map_or(0.0, |r| r.success_rate),
+            best_success: curve.iter().map(|r| r.success_rate).fold(0.0, f32::max),
+            episodes_to_50: first_at(0.5),
+            episodes_to_90: first_at(0.9),
+            wall_time_s,
+        };
+        write_file(
+            &self.path.join("summary.json"),
+            serde_json::to_string_pretty(&summary)?.as_bytes(),
+        )?;
+        Ok(summary)
+    }
+}
+
+/// Writes atomically (temp file, then rename) so a reader never sees half a file.
+fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}

@@ -1,0 +1,153 @@
+//! The `hac` binary as a user runs it: train writes a complete run directory, eval reads it
+//! back, and bad configuration fails early with the offending key named.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn hac(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("the hac binary runs")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hac-cli-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+#[test]
+fn train_writes_a_run_directory_and_eval_reads_it() {
+    let out = scratch("train");
+    let out_s = out.to_str().unwrap();
+    let o = hac(&[
+        "train",
+        "--env",
+        "mountain-car",
+        "--episodes",
+        "20",
+        "--seed",
+        "3",
+        "--set",
+        "test_episodes=5",
+        "--out",
+        out_s,
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    assert_eq!(
+        stdout.lines().filter(|l| l.starts_with("round ")).count(),
+        2,
+        "one progress line per test round:\n{stdout}"
+    );
+    assert!(
+        stdout.contains("success")
+            && stdout.contains("env steps/s")
+            && stdout.contains("updates/s")
+    );
+
+    for file in [
+        "config.toml",
+        "curve.csv",
+        "curve.svg",
+        "summary.json",
+        "weights/level0.safetensors",
+        "weights/level1.safetensors",
+    ] {
+        assert!(out.join(file).is_file(), "missing {file}");
+    }
+    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines.len(), 3, "header and two rounds:\n{csv}");
+    assert!(lines[0].starts_with("round,episodes,env_steps,success_rate"));
+    assert!(lines[2].starts_with("2,20,"));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["episodes"], 20);
+
+    // The saved config reproduces the run's settings.
+    let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(
+        config.contains("env = \"mountain-car\"")
+            && config.contains("seed = 3")
+            && config.contains("test_episodes = 5")
+    );
+
+    let o = hac(&["eval", "--run", out_s, "--episodes", "4", "--json"]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
+    assert_eq!(result["episodes"], 4);
+    let rate = result["success_rate"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&rate));
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn bad_configuration_is_rejected_before_training_with_the_key_named() {
+    let out = scratch("bad");
+    let out_s = out.to_str().unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (&["--env", "cartpole"], "cartpole"),
+        (&["--levels", "0"], "levels"),
+        (&["--set", "gamma=1.5"], "gamma"),
+        (&["--set", "horizn=5"], "horizn"),
+        (&["--set", "hidden_layers=[64, 0]"], "hidden_layers"),
+        (&["--set", "action_noise=[0.1, 0.2]"], "action_noise"),
+        (&["--stop-at", "2"], "stop_at"),
+        (&["--set", "batch_size"], "KEY=VALUE"),
+    ];
+    for (args, key) in cases {
+        let mut all = vec!["train", "--episodes", "1", "--out", out_s];
+        all.extend_from_slice(args);
+        let o = hac(&all);
+        assert!(!o.status.success(), "{args:?} was accepted");
+        let err = text(&o.stderr);
+        assert!(
+            err.contains(key),
+            "{args:?}: error does not name `{key}`: {err}"
+        );
+        assert!(
+            !Path::new(&out).join("config.toml").exists(),
+            "{args:?}: wrote a run before validating"
+        );
+    }
+
+    let file = out.with_extension("toml");
+    std::fs::write(&file, "env = \"pendulum\"\nepisodez = 3\n").unwrap();
+    let o = hac(&["train", "--config", file.to_str().unwrap(), "--out", out_s]);
+    assert!(!o.status.success());
+    assert!(text(&o.stderr).contains("episodez"), "{}", text(&o.stderr));
+    let _ = std::fs::remove_file(&file);
+
+    let o = hac(&["eval", "--run", out_s]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o.stderr).contains("config.toml"),
+        "{}",
+        text(&o.stderr)
+    );
+}
+
+#[test]
+fn print_config_shows_the_resolved_configuration() {
+    let o = hac(&[
+        "train",
+        "--env",
+        "pendulum",
+        "--levels",
+        "3",
+        "--set",
+        "gamma=0.9",
+        "--print-config",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let config = text(&o.stdout);
+    assert!(config.contains("horizon = 10"), "{config}");
+    assert!(config.contains("gamma = 0.9"), "{config}");
+}
