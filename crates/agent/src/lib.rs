@@ -375,19 +375,15 @@ impl Trainer {
     /// `episodes` greedy test episodes; returns the success rate. Uses its own random stream so
     /// testing never changes what training does.
     pub fn test(&mut self, episodes: usize) -> f32 {
-        let mut successes = 0usize;
-        for _ in 0..episodes {
-            let outcome = self.hierarchy.run_episode(
-                self.env.as_mut(),
-                &mut self.agent,
-                &mut self.exploration,
-                Mode::Test,
-                &mut self.test_rng,
-                &mut NullSink,
-            );
-            successes += usize::from(outcome.success);
-        }
-        successes as f32 / episodes.max(1) as f32
+        test_episodes(
+            &mut self.hierarchy,
+            self.env.as_mut(),
+            &mut self.agent,
+            &mut self.exploration,
+            &mut self.test_rng,
+            episodes,
+            |_, _| {},
+        )
     }
 
     /// Runs the reference schedule for `episodes` training episodes: `exploration_episodes`
@@ -471,23 +467,38 @@ pub fn evaluate(
     config: &AgentConfig,
     episodes: usize,
     seed: u64,
-    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
 ) -> f32 {
     let spec = env.spec().clone();
-    let mut hierarchy = Hierarchy::new(&spec, config);
     let mut rng = Rng::seed_from(seed);
     // Never consulted in test mode, where every level acts greedily.
     let mut exploration = GaussianExploration::new(&spec, config, rng.fork());
+    let mut hierarchy = Hierarchy::new(&spec, config);
+    test_episodes(
+        &mut hierarchy,
+        env,
+        agent,
+        &mut exploration,
+        &mut rng,
+        episodes,
+        on_episode,
+    )
+}
+
+/// Runs `episodes` greedy test episodes; returns the success rate.
+fn test_episodes(
+    hierarchy: &mut Hierarchy,
+    env: &mut dyn Env,
+    agent: &mut Agent,
+    exploration: &mut GaussianExploration,
+    rng: &mut Rng,
+    episodes: usize,
+    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+) -> f32 {
     let mut successes = 0usize;
     for _ in 0..episodes {
-        let outcome = hierarchy.run_episode(
-            env,
-            agent,
-            &mut exploration,
-            Mode::Test,
-            &mut rng,
-            &mut NullSink,
-        );
+        let outcome =
+            hierarchy.run_episode(env, agent, exploration, Mode::Test, rng, &mut NullSink);
         successes += usize::from(outcome.success);
         on_episode(&outcome, env.state());
     }

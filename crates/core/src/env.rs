@@ -114,4 +114,36 @@ pub trait Env: Send + std::fmt::Debug {
 
     /// Draws an end goal from the training or test distribution.
     fn sample_end_goal(&self, rng: &mut Rng, mode: Mode, out: &mut [f32]);
+
+    /// Puts the environment into a chosen physical state (for tools and tests; each environment
+    /// documents its layout, e.g. pendulum `[q, qdot]`). f64 so that values such as a threshold
+    /// position are represented exactly.
+    fn set_physical_state(&mut self, state: &[f64]) -> Result<(), StateError> {
+        let _ = state;
+        Err(StateError::Unsupported {
+            env: "this environment",
+        })
+    }
+}
+
+/// A physical state that `Env::set_physical_state` refuses.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StateError {
+    #[error("{env} physical state needs {expected} values, got {got}")]
+    WrongLength {
+        env: &'static str,
+        expected: usize,
+        got: usize,
+    },
+    /// Also covers NaN, which lies in no range.
+    #[error("{env} physical state value {index} is {value}, outside [{low}, {high}]")]
+    OutOfRange {
+        env: &'static str,
+        index: usize,
+        value: f64,
+        low: f64,
+        high: f64,
+    },
+    #[error("{env} cannot be set to a physical state")]
+    Unsupported { env: &'static str },
 }

@@ -17,7 +17,7 @@ pub mod transition;
 
 pub use bounds::{Bounds, within};
 pub use config::{AgentConfig, ConfigError, Noise};
-pub use env::{Env, EnvSpec, LevelDims, Mode};
+pub use env::{Env, EnvSpec, LevelDims, Mode, StateError};
 pub use rng::Rng;
 pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
 pub use transition::{

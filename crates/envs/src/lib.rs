@@ -47,25 +47,8 @@ pub struct UnknownEnv {
     pub name: String,
 }
 
-/// A physical state that `set_physical_state` refuses.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum StateError {
-    #[error("{env} physical state needs {expected} values, got {got}")]
-    WrongLength {
-        env: &'static str,
-        expected: usize,
-        got: usize,
-    },
-    /// Also covers NaN, which lies in no range.
-    #[error("{env} physical state value {index} is {value}, outside [{low}, {high}]")]
-    OutOfRange {
-        env: &'static str,
-        index: usize,
-        value: f64,
-        low: f64,
-        high: f64,
-    },
-}
+/// A physical state that `set_physical_state` refuses (defined in core, beside the trait).
+pub use hac_core::StateError;
 
 /// Checks a physical state's length and per-value ranges (`ranges[i] = (low, high)`).
 fn check_physical_state(

@@ -88,16 +88,6 @@ impl MountainCar {
         [self.x, self.v]
     }
 
-    /// Puts the car at `[x, v]`, which must lie within x in [-1.2, 0.6], v in [-0.07, 0.07].
-    pub fn set_physical_state(&mut self, state: &[f64]) -> Result<(), StateError> {
-        let ranges = [(MIN_X, MAX_X), (-MAX_SPEED, MAX_SPEED)];
-        check_physical_state(Self::NAME, state, &ranges)?;
-        self.x = state[0];
-        self.v = state[1];
-        self.observe();
-        Ok(())
-    }
-
     fn observe(&mut self) {
         self.observation = [self.x as f32, self.v as f32];
     }
@@ -125,6 +115,16 @@ fn spec() -> EnvSpec {
 }
 
 impl Env for MountainCar {
+    /// Puts the car at `[x, v]`, which must lie within x in [-1.2, 0.6], v in [-0.07, 0.07].
+    fn set_physical_state(&mut self, state: &[f64]) -> Result<(), StateError> {
+        let ranges = [(MIN_X, MAX_X), (-MAX_SPEED, MAX_SPEED)];
+        check_physical_state(Self::NAME, state, &ranges)?;
+        self.x = state[0];
+        self.v = state[1];
+        self.observe();
+        Ok(())
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

@@ -117,15 +117,6 @@ impl Pendulum {
         [self.q, self.qdot]
     }
 
-    /// Puts the pendulum at `[q, qdot]` (q in radians from upright, wrapped; both finite).
-    pub fn set_physical_state(&mut self, state: &[f64]) -> Result<(), StateError> {
-        check_physical_state(Self::NAME, state, &[(f64::MIN, f64::MAX); 2])?;
-        self.q = wrap_angle(state[0]);
-        self.qdot = state[1];
-        self.observe();
-        Ok(())
-    }
-
     /// Mechanical energy: kinetic `1/2 I qdot^2` plus potential `m g L cos q` (zero at the
     /// hinge's height), J.
     pub fn energy(&self) -> f64 {
@@ -166,6 +157,15 @@ fn project(state: &[f32], out: &mut [f32]) {
 }
 
 impl Env for Pendulum {
+    /// Puts the pendulum at `[q, qdot]` (q in radians from upright, wrapped; both finite).
+    fn set_physical_state(&mut self, state: &[f64]) -> Result<(), StateError> {
+        check_physical_state(Self::NAME, state, &[(f64::MIN, f64::MAX); 2])?;
+        self.q = wrap_angle(state[0]);
+        self.qdot = state[1];
+        self.observe();
+        Ok(())
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

@@ -3,11 +3,13 @@
 //! - `hac train`: the embedded default: rollouts, replay and learning in one process, with a
 //!   progress line per test round; writes a run directory (see [`run_dir`]).
 //! - `hac eval`: greedy test episodes of a trained run.
+//! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
 //!
 //! Modules: [`config`] resolves the run configuration from every source, [`plot`] draws SVG
 //! learning curves, [`run_dir`] owns the layout of a run directory.
 
 mod config;
+mod env_cmd;
 mod plot;
 mod run_dir;
 
@@ -45,6 +47,38 @@ enum Command {
     Train(TrainArgs),
     /// Run greedy test episodes with a trained run's weights and print the success rate.
     Eval(EvalArgs),
+    /// Inspect the built-in environments.
+    #[command(subcommand)]
+    Env(EnvCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum EnvCommand {
+    /// List the built-in environments.
+    List,
+    /// Show an environment's spaces, bounds, thresholds and default hyperparameters.
+    Describe {
+        /// Environment name (see `hac env list`).
+        name: String,
+        /// Print as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Step an environment by hand: reads one JSON action array per stdin line, prints one JSON
+    /// object per state (`{"step": n, "state": [...]}`), starting with the initial state.
+    /// Actions are clipped to the action bounds.
+    Rollout {
+        /// Environment name (see `hac env list`).
+        #[arg(long)]
+        env: String,
+        /// Seed of the initial-state draw.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Start from this physical state instead (JSON array): pendulum `[q, qdot]`,
+        /// mountain-car `[x, v]`.
+        #[arg(long)]
+        state: Option<String>,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -110,6 +144,11 @@ fn main() {
     let result = match cli.command {
         Command::Train(args) => train(args),
         Command::Eval(args) => eval(args),
+        Command::Env(EnvCommand::List) => env_cmd::list(),
+        Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
+        Command::Env(EnvCommand::Rollout { env, seed, state }) => {
+            env_cmd::rollout(&env, seed, state.as_deref())
+        }
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -151,3 +151,99 @@ fn print_config_shows_the_resolved_configuration() {
     assert!(config.contains("horizon = 10"), "{config}");
     assert!(config.contains("gamma = 0.9"), "{config}");
 }
+
+fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the hac binary runs");
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(stdin.as_bytes())
+        .unwrap();
+    child.wait_with_output().unwrap()
+}
+
+#[test]
+fn env_list_and_describe() {
+    let o = hac(&["env", "list"]);
+    assert!(o.status.success());
+    let list = text(&o.stdout);
+    assert!(
+        list.contains("pendulum") && list.contains("mountain-car"),
+        "{list}"
+    );
+    let o = hac(&["env", "describe", "pendulum", "--json"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
+    assert_eq!(d["spec"]["state_dim"], 3);
+    assert_eq!(d["defaults"][1]["horizon"], 32);
+    let o = hac(&["env", "describe", "nope"]);
+    assert!(!o.status.success() && text(&o.stderr).contains("unknown environment"));
+}
+
+#[test]
+fn env_rollout_steps_from_a_set_state_and_rejects_bad_lines() {
+    // Mountain car at x = 0.44, v = 0.05 with full throttle: the documented update gives
+    // v = 0.05 + 0.0015 - 0.0025 cos(1.32) and x = 0.44 + v, past the flag at 0.45.
+    let o = hac_with_stdin(
+        &[
+            "env",
+            "rollout",
+            "--env",
+            "mountain-car",
+            "--state",
+            "[0.44, 0.05]",
+        ],
+        "[1]\n[5]\n",
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let lines: Vec<serde_json::Value> = text(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3);
+    assert!(text(&o.stdout).starts_with("{\"step\":0,\"state\":"));
+    let v = 0.05 + 0.0015 - 0.0025 * (3.0f64 * 0.44).cos();
+    let state = lines[1]["state"].as_array().unwrap();
+    assert!((state[1].as_f64().unwrap() - v).abs() < 1e-6);
+    assert!((state[0].as_f64().unwrap() - (0.44 + v)).abs() < 1e-6);
+    assert_eq!(lines[1]["terminated"], true);
+
+    for (input, needle) in [
+        ("[1, 2]\n", "1 values, got 2"),
+        ("[\"x\"]\n", "JSON array"),
+        ("1\n", "JSON array"),
+    ] {
+        let o = hac_with_stdin(&["env", "rollout", "--env", "mountain-car"], input);
+        assert!(!o.status.success(), "{input:?} accepted");
+        assert!(
+            text(&o.stderr).contains(needle),
+            "{input:?}: {}",
+            text(&o.stderr)
+        );
+        assert!(text(&o.stderr).contains("line 1"), "{}", text(&o.stderr));
+    }
+    let o = hac_with_stdin(
+        &[
+            "env",
+            "rollout",
+            "--env",
+            "pendulum",
+            "--state",
+            "[1, 2, 3]",
+        ],
+        "",
+    );
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("needs 2 values, got 3"),
+        "{}",
+        text(&o.stderr)
+    );
+}

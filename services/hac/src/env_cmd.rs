@@ -1,0 +1,149 @@
+//! `hac env`: list the built-in environments, describe one, and step one by hand.
+
+use std::io::{BufRead, Write};
+
+use anyhow::{Context, Result, bail};
+use hac_core::{Env, Rng};
+use serde_json::json;
+
+/// `hac env list`: one line per environment.
+pub fn list() -> Result<()> {
+    for name in hac_envs::names() {
+        let env = hac_envs::make(name)?;
+        println!("{name:<14} {}", env.spec().description);
+    }
+    Ok(())
+}
+
+/// `hac env describe NAME`: spaces, bounds, thresholds and defaults per level count.
+pub fn describe(name: &str, json_out: bool) -> Result<()> {
+    let env = hac_envs::make(name)?;
+    let spec = env.spec();
+    let defaults: Vec<_> = (1..=3).map(|k| env.default_config(k)).collect();
+    if json_out {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({"spec": spec, "defaults": defaults}))?
+        );
+        return Ok(());
+    }
+    let fmt = |v: &[f32]| {
+        v.iter()
+            .map(|x| format!("{x:.4}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    println!("{} — {}", spec.name, spec.description);
+    println!("  state dimension           {}", spec.state_dim);
+    println!(
+        "  primitive action bounds   low [{}]  high [{}]",
+        fmt(&spec.action_bounds.low),
+        fmt(&spec.action_bounds.high)
+    );
+    println!("  end goal dimension        {}", spec.end_goal_dim);
+    println!(
+        "  end-goal thresholds       [{}]",
+        fmt(&spec.end_goal_thresholds)
+    );
+    println!(
+        "  subgoal bounds            low [{}]  high [{}]",
+        fmt(&spec.subgoal_bounds.low),
+        fmt(&spec.subgoal_bounds.high)
+    );
+    println!(
+        "  subgoal thresholds        [{}]",
+        fmt(&spec.subgoal_thresholds)
+    );
+    println!("  max primitive actions     {}", spec.max_actions);
+    println!(
+        "  physics steps per action  {}",
+        spec.physics_steps_per_action
+    );
+    println!("  defaults per number of levels:");
+    println!(
+        "    levels  H     lambda  noise (action / subgoal)    gamma  batch  updates/ep  hidden"
+    );
+    for c in &defaults {
+        println!(
+            "    {:<7} {:<5} {:<7} {:<37} {:<6} {:<6} {:<11} {:?}",
+            c.levels,
+            c.horizon,
+            c.subgoal_test_prob,
+            format!("{} / {}", noise(&c.action_noise), noise(&c.subgoal_noise)),
+            c.gamma,
+            c.batch_size,
+            c.updates_per_episode,
+            c.hidden_layers
+        );
+    }
+    println!(
+        "  (all keys: hac train --print-config --env {} --levels K)",
+        spec.name
+    );
+    Ok(())
+}
+
+fn noise(n: &hac_core::Noise) -> String {
+    match n {
+        hac_core::Noise::Relative(f) => format!("{f} x half range"),
+        hac_core::Noise::Absolute(v) => format!("std {v:?}"),
+    }
+}
+
+/// `hac env rollout`: reset (or set the physical state), then apply one JSON action per stdin
+/// line, printing one JSON object per state. Actions are clipped to the action bounds, as the
+/// agent's are. The first bad line ends the command with an error naming the line.
+pub fn rollout(name: &str, seed: u64, state: Option<&str>) -> Result<()> {
+    let mut env = hac_envs::make(name)?;
+    let mut rng = Rng::seed_from(seed);
+    env.reset(&mut rng);
+    if let Some(text) = state {
+        let values: Vec<f64> = serde_json::from_str(text)
+            .with_context(|| format!("--state must be a JSON array of numbers, got `{text}`"))?;
+        env.set_physical_state(&values)?;
+    }
+    let stdout = std::io::stdout();
+    let mut out = stdout.lock();
+    emit(&mut out, 0, env.as_ref())?;
+    let action_dim = env.spec().action_dim();
+    let mut action = vec![0.0f32; action_dim];
+    for (i, line) in std::io::stdin().lock().lines().enumerate() {
+        let line = line.context("reading stdin")?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let values: Vec<f64> = serde_json::from_str(&line).with_context(|| {
+            format!(
+                "line {}: an action must be a JSON array of {action_dim} numbers, got `{line}`",
+                i + 1
+            )
+        })?;
+        if values.len() != action_dim {
+            bail!(
+                "line {}: {name} actions have {action_dim} values, got {}",
+                i + 1,
+                values.len()
+            );
+        }
+        for (a, v) in action.iter_mut().zip(&values) {
+            *a = *v as f32;
+        }
+        env.spec().action_bounds.clip(&mut action);
+        env.step(&action);
+        emit(&mut out, i + 1, env.as_ref())?;
+    }
+    Ok(())
+}
+
+fn emit(out: &mut impl Write, step: usize, env: &dyn Env) -> Result<()> {
+    // Written by hand so the keys keep the documented order: step, state[, terminated].
+    let state = serde_json::to_string(env.state())?;
+    let terminated = if env.terminated() {
+        ",\"terminated\":true"
+    } else {
+        ""
+    };
+    writeln!(out, "{{\"step\":{step},\"state\":{state}{terminated}}}")?;
+    out.flush()?;
+    Ok(())
+}
