@@ -3,19 +3,22 @@
 //!
 //! - [`pendulum`]: the paper's inverted-pendulum swing-up, integrated directly from its rigid-body
 //!   model (what the reference simulated in MuJoCo).
+//! - [`ur5`]: the paper's three-joint UR5 reacher, a serial chain integrated with rigid-body
+//!   dynamics (composite rigid body + recursive Newton-Euler).
 //! - [`mountain_car`]: the continuous mountain car with the PyTorch port's settings as its preset.
 //! - This file: the registry ([`make`], [`names`]) and what the environments share: the error for
 //!   a bad physical state, angle wrapping, and the horizon rule for deep hierarchies.
 //!
 //! Every environment is deterministic for a seed (all randomness comes from the [`hac_core::Rng`]
-//! passed to `reset`), and `step` allocates nothing. Each one also offers, as inherent methods, a
-//! constructor with physics overrides (for tests) and `set_physical_state` (for tools that start
-//! from a chosen state).
+//! passed to `reset`), and `step` allocates nothing. Each one also offers a constructor with physics
+//! overrides (for tests) and implements `Env::set_physical_state` (for tools that start from a
+//! chosen state).
 
 #![forbid(unsafe_code)]
 
 pub mod mountain_car;
 pub mod pendulum;
+pub mod ur5;
 
 use std::f64::consts::{PI, TAU};
 
@@ -23,16 +26,18 @@ use hac_core::Env;
 
 pub use mountain_car::{MountainCar, MountainCarPhysics};
 pub use pendulum::{Pendulum, PendulumPhysics};
+pub use ur5::{Ur5Physics, Ur5Reacher};
 
 /// Names accepted by [`make`], in the order tools should list them.
 pub fn names() -> &'static [&'static str] {
-    &[Pendulum::NAME, MountainCar::NAME]
+    &[Pendulum::NAME, Ur5Reacher::NAME, MountainCar::NAME]
 }
 
 /// A fresh environment with its standard physics, by registry name.
 pub fn make(name: &str) -> Result<Box<dyn Env>, UnknownEnv> {
     match name {
         Pendulum::NAME => Ok(Box::new(Pendulum::new())),
+        Ur5Reacher::NAME => Ok(Box::new(Ur5Reacher::new())),
         MountainCar::NAME => Ok(Box::new(MountainCar::new())),
         _ => Err(UnknownEnv {
             name: name.to_string(),

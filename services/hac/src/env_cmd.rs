@@ -61,7 +61,7 @@ pub fn describe(name: &str, json_out: bool) -> Result<()> {
     );
     println!("  defaults per number of levels:");
     println!(
-        "    levels  H     lambda  noise (action / subgoal)    gamma  batch  updates/ep  hidden"
+        "    levels  H     lambda  noise (action / subgoal)              gamma  batch  updates/ep  hidden"
     );
     for c in &defaults {
         println!(

@@ -75,7 +75,7 @@ enum EnvCommand {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Start from this physical state instead (JSON array): pendulum `[q, qdot]`,
-        /// mountain-car `[x, v]`.
+        /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`.
         #[arg(long)]
         state: Option<String>,
     },
@@ -83,7 +83,7 @@ enum EnvCommand {
 
 #[derive(Debug, Args)]
 struct TrainArgs {
-    /// Built-in environment: pendulum, mountain-car [default: pendulum].
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
     env: Option<String>,
     /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].
