@@ -39,9 +39,9 @@ pub trait Policy {
 
 /// The random choices of the behaviour policy in training episodes.
 pub trait Exploration {
-    /// Turns level `level`'s greedy output into its behaviour action, in place; the result is
-    /// clipped to `bounds` by the rollout afterwards.
-    fn explore(&mut self, level: usize, bounds: &Bounds, action: &mut [f32]);
+    /// Turns level `level`'s greedy output for `state` into its behaviour action, in place; the
+    /// result is clipped to `bounds` by the rollout afterwards.
+    fn explore(&mut self, level: usize, state: &[f32], bounds: &Bounds, action: &mut [f32]);
     /// Whether the subgoal that level `level` (> 0) just proposed is tested.
     fn test_subgoal(&mut self, level: usize) -> bool;
     /// A uniformly random attempt index in `0..n` whose achieved goal becomes a hindsight goal.
@@ -81,7 +81,7 @@ impl GaussianExploration {
 }
 
 impl Exploration for GaussianExploration {
-    fn explore(&mut self, level: usize, bounds: &Bounds, action: &mut [f32]) {
+    fn explore(&mut self, level: usize, _state: &[f32], bounds: &Bounds, action: &mut [f32]) {
         if self.rng.bernoulli(self.random_action_prob) {
             bounds.sample(&mut self.rng, action);
         } else {
@@ -284,7 +284,8 @@ impl Hierarchy {
             ep.policy.act(i, &self.state, &lv.goal, &mut lv.action);
             let mut test_next = tested;
             if train && !tested {
-                ep.exploration.explore(i, bounds, &mut lv.action);
+                ep.exploration
+                    .explore(i, &self.state, bounds, &mut lv.action);
                 if i > 0 {
                     test_next = ep.exploration.test_subgoal(i);
                 }

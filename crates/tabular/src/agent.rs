@@ -15,15 +15,11 @@
 //! beyond the radius) are skipped and counted: they describe choices the level can never make.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU32, Ordering};
 
 use hac_core::{AgentConfig, ConfigError, Policy, Rng, Transition, TransitionSink};
 use serde::{Deserialize, Serialize};
 
 use crate::grid::{Grid, GridError, MOVES};
-
-/// Marks "no known cell" in the shared cursor.
-const NO_STATE: u32 = u32::MAX;
 
 /// The value every table entry starts from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -233,13 +229,11 @@ impl ActionSpace {
     }
 }
 
-/// What the agent and its exploration share: the state space, every level's action space, and
-/// per level the cell the agent last acted from.
+/// What the agent and its exploration share: the state space and every level's action space.
 #[derive(Debug)]
 struct Shared {
     grid: Grid,
     levels: Vec<ActionSpace>,
-    cursor: Vec<AtomicU32>,
 }
 
 /// Tabular HAC ("hierarchical Q-learning"): the greedy [`Policy`] of every level and, as a
@@ -308,12 +302,10 @@ impl TabularAgent {
             .iter()
             .map(|s| vec![init; per_slot * s.slots()])
             .collect();
-        let cursor = levels.iter().map(|_| AtomicU32::new(NO_STATE)).collect();
         Ok(Self {
             shared: Arc::new(Shared {
                 grid: grid.clone(),
                 levels,
-                cursor,
             }),
             tables,
             horizon: config.horizon as f32,
@@ -415,7 +407,6 @@ impl Policy for TabularAgent {
     fn act(&mut self, level: usize, state: &[f32], goal: &[f32], action: &mut [f32]) {
         let shared = &*self.shared;
         let Some(s) = shared.grid.index_of_point(state) else {
-            shared.cursor[level].store(NO_STATE, Ordering::Relaxed);
             // Off the state space (only an unrelated environment gets here): a random move, or
             // the state itself as subgoal.
             match shared.levels[level] {
@@ -424,7 +415,6 @@ impl Policy for TabularAgent {
             }
             return;
         };
-        shared.cursor[level].store(s as u32, Ordering::Relaxed);
         let space = &shared.levels[level];
         let allowed = space.allowed(s);
         let slot = match shared.grid.index_of_point(goal) {
@@ -462,11 +452,6 @@ impl TransitionSink for TabularAgent {
 /// uniformly random move (level 0) or a uniformly random allowed subgoal around the current cell
 /// (levels above), otherwise the greedy choice; subgoals tested with probability lambda; replay
 /// goals uniform.
-///
-/// `Exploration::explore` sees only the greedy output, but a random subgoal must be drawn around
-/// the current cell. The rollout always calls `explore(level, ..)` right after
-/// `Policy::act(level, ..)`, so the agent records the cell it acted from per level and this
-/// reads it back.
 #[derive(Debug)]
 pub struct TabularExploration {
     shared: Arc<Shared>,
@@ -476,7 +461,13 @@ pub struct TabularExploration {
 }
 
 impl hac_core::Exploration for TabularExploration {
-    fn explore(&mut self, level: usize, bounds: &hac_core::Bounds, action: &mut [f32]) {
+    fn explore(
+        &mut self,
+        level: usize,
+        state: &[f32],
+        bounds: &hac_core::Bounds,
+        action: &mut [f32],
+    ) {
         if !self.rng.bernoulli(self.random_action_prob) {
             return;
         }
@@ -486,15 +477,16 @@ impl hac_core::Exploration for TabularExploration {
             action[0] = self.rng.below(MOVES.len()) as f32;
             return;
         }
-        match shared.cursor[level].load(Ordering::Relaxed) {
-            NO_STATE => {
+        match shared.grid.index_of_point(state) {
+            // Off the state space (only an unrelated environment gets here).
+            None => {
                 bounds.sample(&mut self.rng, action);
                 action.iter_mut().for_each(|a| *a = a.round());
             }
-            s => {
-                let allowed = space.allowed(s as usize);
+            Some(s) => {
+                let allowed = space.allowed(s);
                 let slot = allowed[self.rng.below(allowed.len())];
-                space.write(&shared.grid, s as usize, slot as usize, action);
+                space.write(&shared.grid, s, slot as usize, action);
             }
         }
     }
@@ -738,7 +730,7 @@ mod tests {
         for _ in 0..500 {
             let mut out = [0.0; 2];
             a.act(1, &from.to_f32(), &[0.0, 0.0], &mut out);
-            x.explore(1, &bounds, &mut out);
+            x.explore(1, &from.to_f32(), &bounds, &mut out);
             let t = grid.cell(grid.index_of_point(&out).expect("a free cell"));
             let d = from.row.abs_diff(t.row) + from.col.abs_diff(t.col);
             assert!((1..=3).contains(&d), "{t:?}");
@@ -756,7 +748,12 @@ mod tests {
         let mut seen = [false; 4];
         for _ in 0..100 {
             let mut out = [0.0];
-            x.explore(0, &hac_core::Bounds::new(vec![0.0], vec![3.0]), &mut out);
+            x.explore(
+                0,
+                &from.to_f32(),
+                &hac_core::Bounds::new(vec![0.0], vec![3.0]),
+                &mut out,
+            );
             seen[out[0] as usize] = true;
         }
         assert_eq!(seen, [true; 4]);

@@ -143,7 +143,7 @@ pub struct ScriptedExploration {
 }
 
 impl Exploration for ScriptedExploration {
-    fn explore(&mut self, level: usize, _bounds: &Bounds, action: &mut [f32]) {
+    fn explore(&mut self, level: usize, _state: &[f32], _bounds: &Bounds, action: &mut [f32]) {
         for (a, p) in action.iter_mut().zip(&self.perturbation[level]) {
             *a += p;
         }
