@@ -3,6 +3,7 @@
 //! - `hac train`: the embedded default: rollouts, replay and learning in one process, with a
 //!   progress line per test round; writes a run directory (see [`run_dir`]).
 //! - `hac eval`: greedy test episodes of a trained run.
+//! - `hac experiment`: a grid of level counts x seeds with mean +- std plots and a summary.
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
 //!
 //! Modules: [`config`] resolves the run configuration from every source, [`plot`] draws SVG
@@ -10,6 +11,7 @@
 
 mod config;
 mod env_cmd;
+mod experiment;
 mod plot;
 mod run_dir;
 
@@ -47,9 +49,40 @@ enum Command {
     Train(TrainArgs),
     /// Run greedy test episodes with a trained run's weights and print the success rate.
     Eval(EvalArgs),
+    /// Run a grid of level counts x seeds (several at a time) and summarise it: a plot per
+    /// environment with mean +- 1 std per level count, and a markdown table.
+    Experiment(ExperimentArgs),
     /// Inspect the built-in environments.
     #[command(subcommand)]
     Env(EnvCommand),
+}
+
+#[derive(Debug, Args)]
+struct ExperimentArgs {
+    /// Built-in environment (see `hac env list`).
+    #[arg(long)]
+    env: String,
+    /// Level counts to compare, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
+    levels: Vec<usize>,
+    /// Seeds per level count (seeds 0..N).
+    #[arg(long, default_value_t = 5)]
+    seeds: u64,
+    /// Training episodes per run [default: as `hac train`].
+    #[arg(long)]
+    episodes: Option<u64>,
+    /// Runs at a time (each run uses one thread).
+    #[arg(long, default_value_t = 2)]
+    jobs: usize,
+    /// Output directory [default: runs/experiment-<env>].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// TOML config file applied to every run (as for `hac train`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override one agent hyperparameter for every run (repeatable), as for `hac train`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -144,6 +177,18 @@ fn main() {
     let result = match cli.command {
         Command::Train(args) => train(args),
         Command::Eval(args) => eval(args),
+        Command::Experiment(args) => experiment::run(experiment::Grid {
+            out: args
+                .out
+                .unwrap_or_else(|| PathBuf::from(format!("runs/experiment-{}", args.env))),
+            env: args.env,
+            levels: args.levels,
+            seeds: args.seeds,
+            episodes: args.episodes,
+            jobs: args.jobs,
+            config: args.config,
+            set: args.set,
+        }),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {

@@ -247,3 +247,77 @@ fn env_rollout_steps_from_a_set_state_and_rejects_bad_lines() {
         text(&o.stderr)
     );
 }
+
+#[test]
+fn experiment_runs_the_grid_and_summarises_it() {
+    let out = scratch("experiment");
+    let out_s = out.to_str().unwrap();
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "mountain-car",
+        "--levels",
+        "1,2",
+        "--seeds",
+        "2",
+        "--episodes",
+        "10",
+        "--set",
+        "test_episodes=3",
+        "--jobs",
+        "2",
+        "--out",
+        out_s,
+    ]);
+    assert!(o.status.success(), "experiment failed: {}", text(&o.stderr));
+    for run in [
+        "mountain-car-1l-seed0",
+        "mountain-car-1l-seed1",
+        "mountain-car-2l-seed0",
+        "mountain-car-2l-seed1",
+    ] {
+        assert!(out.join(run).join("curve.csv").is_file(), "missing {run}");
+    }
+    let svg = std::fs::read_to_string(out.join("mountain-car.svg")).unwrap();
+    assert_eq!(
+        svg.matches("<polyline").count(),
+        2,
+        "one curve per level count"
+    );
+    assert_eq!(
+        svg.matches("fill-opacity").count(),
+        2,
+        "one std band per level count"
+    );
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains("| 1 | 2 |") && summary.contains("| 2 | 2 |"),
+        "{summary}"
+    );
+    assert_eq!(
+        text(&o.stdout)
+            .lines()
+            .filter(|l| l.starts_with('['))
+            .count(),
+        4,
+        "a line per finished run"
+    );
+
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "mountain-car",
+        "--levels",
+        "2",
+        "--seeds",
+        "0",
+        "--out",
+        out_s,
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("--seeds"),
+        "{}",
+        text(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -1,0 +1,277 @@
+//! `hac experiment`: a grid of level counts x seeds, run `--jobs` at a time, summarised the way the
+//! paper shows results: one plot per environment with the mean test success and a +- 1 standard
+//! deviation band per level count, and a markdown table.
+//!
+//! Output directory layout:
+//! - `<env>-<k>l-seed<s>/`: one run directory per run, exactly as `hac train` writes it;
+//! - `<env>.svg`: the learning curves, mean +- 1 std over seeds, one curve per level count;
+//! - `summary.md`: per level count, episodes to 50% and 90% (median over the seeds that got
+//!   there, and how many did), final success (mean +- std), wall time.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use hac_agent::{RoundReport, Trainer, TrainerOptions};
+
+use crate::config::{self, RunConfig};
+use crate::plot;
+use crate::run_dir::{RunDir, Summary};
+
+/// What to run.
+#[derive(Debug)]
+pub struct Grid {
+    pub env: String,
+    pub levels: Vec<usize>,
+    pub seeds: u64,
+    pub episodes: Option<u64>,
+    pub jobs: usize,
+    pub out: PathBuf,
+    pub config: Option<PathBuf>,
+    pub set: Vec<String>,
+}
+
+/// One finished run.
+#[derive(Debug)]
+struct Finished {
+    config: RunConfig,
+    curve: Vec<RoundReport>,
+    summary: Summary,
+}
+
+pub fn run(grid: Grid) -> Result<()> {
+    if grid.levels.is_empty() {
+        bail!("invalid value for `--levels`: give at least one level count, e.g. 1,2,3");
+    }
+    if grid.seeds == 0 {
+        bail!("invalid value for `--seeds`: must be at least 1");
+    }
+    if grid.jobs == 0 {
+        bail!("invalid value for `--jobs`: must be at least 1");
+    }
+    // Resolve (and so validate) every run's configuration before starting any.
+    let mut runs = Vec::new();
+    for &levels in &grid.levels {
+        for seed in 0..grid.seeds {
+            let config = config::resolve(
+                grid.config.as_deref(),
+                config::Overrides {
+                    env: Some(grid.env.clone()),
+                    levels: Some(levels),
+                    seed: Some(seed),
+                    episodes: grid.episodes,
+                    // Parallelism comes from running jobs side by side.
+                    threads: Some(1),
+                    set: grid.set.clone(),
+                    ..Default::default()
+                },
+            )?;
+            runs.push(config);
+        }
+    }
+    std::fs::create_dir_all(&grid.out)
+        .with_context(|| format!("creating {}", grid.out.display()))?;
+    println!(
+        "experiment: {} with levels {:?} x {} seeds = {} runs, {} at a time; writing {}",
+        grid.env,
+        grid.levels,
+        grid.seeds,
+        runs.len(),
+        grid.jobs.min(runs.len()),
+        grid.out.display()
+    );
+
+    let started = Instant::now();
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let results: Mutex<Vec<Result<Finished>>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..grid.jobs.min(runs.len()) {
+            scope.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(config) = runs.get(i) else { break };
+                    let result = run_one(config, &grid.out);
+                    let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    match &result {
+                        Ok(f) => println!(
+                            "[{n}/{}] {} level{}, seed {}: final {:.1}%, 90% {}, {:.1}s",
+                            runs.len(),
+                            f.config.levels,
+                            if f.config.levels == 1 { "" } else { "s" },
+                            f.config.seed,
+                            100.0 * f.summary.final_success,
+                            f.summary
+                                .episodes_to_90
+                                .map_or("never".into(), |e| format!("after {e} episodes")),
+                            f.summary.wall_time_s
+                        ),
+                        Err(e) => println!("[{n}/{}] failed: {e:#}", runs.len()),
+                    }
+                    results
+                        .lock()
+                        .expect("no panics while holding the lock")
+                        .push(result);
+                }
+            });
+        }
+    });
+    let finished: Vec<Finished> = results
+        .into_inner()
+        .expect("workers finished")
+        .into_iter()
+        .collect::<Result<_>>()?;
+
+    let groups = group_by_levels(&grid.levels, &finished);
+    let svg = plot::success_chart(
+        &format!(
+            "{}: mean test success +- 1 std over {} seeds",
+            grid.env, grid.seeds
+        ),
+        "training episodes",
+        &groups
+            .iter()
+            .map(|(k, runs)| series(*k, runs))
+            .collect::<Vec<_>>(),
+    );
+    let svg_path = grid.out.join(format!("{}.svg", grid.env));
+    std::fs::write(&svg_path, svg).with_context(|| format!("writing {}", svg_path.display()))?;
+    let table = summary_table(&grid.env, &groups);
+    let md_path = grid.out.join("summary.md");
+    std::fs::write(&md_path, &table).with_context(|| format!("writing {}", md_path.display()))?;
+    println!("{table}");
+    println!(
+        "done in {:.1}s: {} and {}",
+        started.elapsed().as_secs_f64(),
+        svg_path.display(),
+        md_path.display()
+    );
+    Ok(())
+}
+
+fn run_one(config: &RunConfig, out: &Path) -> Result<Finished> {
+    let dir_path = out.join(format!(
+        "{}-{}l-seed{}",
+        config.env, config.levels, config.seed
+    ));
+    let mut dir = RunDir::create(&dir_path, config)?;
+    let env = hac_envs::make(&config.env)?;
+    let options = TrainerOptions {
+        seed: config.seed,
+        threads: config.threads,
+        replay_shards: config.replay_shards,
+    };
+    let mut trainer = Trainer::new(env, config.agent.clone(), options)?;
+    let started = Instant::now();
+    let mut write_error = None;
+    let curve = trainer.run(config.episodes, config.stop_at, |report| {
+        if let Err(e) = dir.record(report) {
+            write_error.get_or_insert(e);
+        }
+    });
+    if let Some(e) = write_error {
+        return Err(e);
+    }
+    let summary = dir.finish(trainer.agent(), &curve, started.elapsed().as_secs_f64())?;
+    Ok(Finished {
+        config: config.clone(),
+        curve,
+        summary,
+    })
+}
+
+fn group_by_levels<'a>(levels: &[usize], runs: &'a [Finished]) -> Vec<(usize, Vec<&'a Finished>)> {
+    levels
+        .iter()
+        .map(|&k| {
+            let mut group: Vec<&Finished> = runs.iter().filter(|r| r.config.levels == k).collect();
+            group.sort_by_key(|r| r.config.seed);
+            (k, group)
+        })
+        .collect()
+}
+
+/// Mean and population standard deviation.
+fn mean_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len().max(1) as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+/// The mean curve with its +- 1 std band, over the rounds every run of the group reached.
+fn series(levels: usize, runs: &[&Finished]) -> plot::Series {
+    let rounds = runs.iter().map(|r| r.curve.len()).min().unwrap_or(0);
+    let mut points = Vec::with_capacity(rounds);
+    let mut band = Vec::with_capacity(rounds);
+    for i in 0..rounds {
+        let values: Vec<f64> = runs
+            .iter()
+            .map(|r| r.curve[i].success_rate as f64)
+            .collect();
+        let (mean, std) = mean_std(&values);
+        points.push((runs[0].curve[i].episodes as f64, mean));
+        band.push(((mean - std).max(0.0), (mean + std).min(1.0)));
+    }
+    plot::Series {
+        label: format!("{levels} level{}", if levels == 1 { "" } else { "s" }),
+        points,
+        band: Some(band),
+    }
+}
+
+fn summary_table(env: &str, groups: &[(usize, Vec<&Finished>)]) -> String {
+    let mut s = format!(
+        "## {env}\n\n| levels | seeds | episodes to 50% (median, reached) | episodes to 90% (median, reached) | final success (mean +- std) | wall time per run (mean) |\n| --- | --- | --- | --- | --- | --- |\n"
+    );
+    for (k, runs) in groups {
+        let to = |f: fn(&Summary) -> Option<u64>| {
+            let mut hits: Vec<u64> = runs.iter().filter_map(|r| f(&r.summary)).collect();
+            hits.sort_unstable();
+            match hits.len() {
+                0 => format!("never (0 of {})", runs.len()),
+                n => format!("{} ({n} of {})", median(&hits), runs.len()),
+            }
+        };
+        let finals: Vec<f64> = runs
+            .iter()
+            .map(|r| r.summary.final_success as f64)
+            .collect();
+        let (mean, std) = mean_std(&finals);
+        let (wall, _) = mean_std(
+            &runs
+                .iter()
+                .map(|r| r.summary.wall_time_s)
+                .collect::<Vec<_>>(),
+        );
+        s.push_str(&format!(
+            "| {k} | {} | {} | {} | {:.1}% +- {:.1} | {wall:.1} s |\n",
+            runs.len(),
+            to(|s| s.episodes_to_50),
+            to(|s| s.episodes_to_90),
+            100.0 * mean,
+            100.0 * std
+        ));
+    }
+    s
+}
+
+/// Median of a sorted, non-empty slice (the lower middle for an even count, so it is a value
+/// that occurred).
+fn median(sorted: &[u64]) -> u64 {
+    sorted[(sorted.len() - 1) / 2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mean_std_and_median() {
+        assert_eq!(mean_std(&[1.0, 3.0]), (2.0, 1.0));
+        assert_eq!(median(&[100, 200, 300]), 200);
+        assert_eq!(median(&[100, 200]), 100);
+    }
+}
