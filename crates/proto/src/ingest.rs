@@ -1,0 +1,190 @@
+//! The ingest stream: `pb::IngestRequest` <-> [`IngestMessage`].
+
+use hac_core::LevelDims;
+
+use crate::{DecodedBatch, WireError, decode_batch, pb};
+
+/// One message of an actor's ingest stream. `(actor_id, incarnation, sequence)` identifies it
+/// for exactly-once storage; sequences start at 1 per incarnation, and incarnations are never 0.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IngestMessage {
+    pub actor_id: String,
+    pub incarnation: u64,
+    pub sequence: u64,
+    pub item: IngestItem,
+}
+
+/// What an ingest message carries.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IngestItem {
+    Batch(DecodedBatch),
+    /// A finished training episode, sent after its last batch (the rate limiter counts these).
+    Episode {
+        env_steps: u64,
+        success: bool,
+        weights_version: u64,
+    },
+}
+
+/// Validates an ingest request: the identifying fields are set, an item is present, and a batch
+/// passes [`decode_batch`] against `dims` and `max_count`.
+pub fn decode_ingest(
+    msg: pb::IngestRequest,
+    dims: &[LevelDims],
+    max_count: usize,
+) -> Result<IngestMessage, WireError> {
+    if msg.actor_id.is_empty() {
+        return Err(WireError::missing("ingest_request.actor_id"));
+    }
+    if msg.incarnation == 0 {
+        return Err(WireError::missing("ingest_request.incarnation"));
+    }
+    if msg.sequence == 0 {
+        return Err(WireError::missing("ingest_request.sequence"));
+    }
+    let item = match msg.item.ok_or(WireError::NoIngestItem)? {
+        pb::ingest_request::Item::Batch(batch) => {
+            IngestItem::Batch(decode_batch(batch, dims, max_count)?)
+        }
+        pb::ingest_request::Item::Episode(episode) => IngestItem::Episode {
+            env_steps: episode.env_steps,
+            success: episode.success,
+            weights_version: episode.weights_version,
+        },
+    };
+    Ok(IngestMessage {
+        actor_id: msg.actor_id,
+        incarnation: msg.incarnation,
+        sequence: msg.sequence,
+        item,
+    })
+}
+
+impl From<IngestMessage> for pb::IngestRequest {
+    fn from(msg: IngestMessage) -> Self {
+        let item = match msg.item {
+            IngestItem::Batch(batch) => pb::ingest_request::Item::Batch(batch.into()),
+            IngestItem::Episode {
+                env_steps,
+                success,
+                weights_version,
+            } => pb::ingest_request::Item::Episode(pb::EpisodeSummary {
+                env_steps,
+                success,
+                weights_version,
+            }),
+        };
+        Self {
+            actor_id: msg.actor_id,
+            incarnation: msg.incarnation,
+            sequence: msg.sequence,
+            item: Some(item),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use hac_core::Batch;
+    use proptest::prelude::*;
+    use prost::Message;
+
+    use super::*;
+
+    /// An expected error message and the change to a valid message that provokes it.
+    type Case<M> = (&'static str, fn(&mut M));
+
+    const DIMS: [LevelDims; 2] = [
+        LevelDims {
+            state: 3,
+            goal: 2,
+            action: 1,
+        },
+        LevelDims {
+            state: 3,
+            goal: 2,
+            action: 2,
+        },
+    ];
+
+    fn batch_message(len: usize) -> IngestMessage {
+        let mut batch = Batch::zeros(DIMS[1], len);
+        batch.rewards.fill(-1.0);
+        IngestMessage {
+            actor_id: "actor-0".into(),
+            incarnation: 3,
+            sequence: 1,
+            item: IngestItem::Batch(DecodedBatch {
+                level: 1,
+                weights_version: 9,
+                batch,
+            }),
+        }
+    }
+
+    fn through_the_wire(msg: IngestMessage) -> Result<IngestMessage, WireError> {
+        let bytes = pb::IngestRequest::from(msg).encode_to_vec();
+        let decoded =
+            pb::IngestRequest::decode(bytes.as_slice()).expect("prost decodes its own bytes");
+        decode_ingest(decoded, &DIMS, 64)
+    }
+
+    proptest! {
+        #[test]
+        fn episodes_round_trip(
+            env_steps in any::<u64>(),
+            success in any::<bool>(),
+            weights_version in any::<u64>(),
+            incarnation in 1u64..,
+            sequence in 1u64..,
+        ) {
+            let msg = IngestMessage {
+                actor_id: "a".into(),
+                incarnation,
+                sequence,
+                item: IngestItem::Episode { env_steps, success, weights_version },
+            };
+            prop_assert_eq!(through_the_wire(msg.clone()).expect("valid"), msg);
+        }
+    }
+
+    #[test]
+    fn batches_round_trip() {
+        let msg = batch_message(5);
+        assert_eq!(through_the_wire(msg.clone()).expect("valid"), msg);
+    }
+
+    #[test]
+    fn identifying_fields_are_required() {
+        let cases: [Case<IngestMessage>; 3] = [
+            ("missing field ingest_request.actor_id", |m| {
+                m.actor_id.clear()
+            }),
+            ("missing field ingest_request.incarnation", |m| {
+                m.incarnation = 0
+            }),
+            ("missing field ingest_request.sequence", |m| m.sequence = 0),
+        ];
+        for (expected, mutate) in cases {
+            let mut msg = batch_message(2);
+            mutate(&mut msg);
+            let err = through_the_wire(msg).expect_err("a field is missing");
+            assert!(matches!(err, WireError::MissingField { .. }));
+            assert_eq!(err.to_string(), expected);
+        }
+    }
+
+    #[test]
+    fn a_request_without_an_item_is_refused() {
+        let mut msg = pb::IngestRequest::from(batch_message(2));
+        msg.item = None;
+        let err = decode_ingest(msg, &DIMS, 64).expect_err("no item");
+        assert_eq!(err.to_string(), "ingest request has no item");
+    }
+
+    #[test]
+    fn the_batch_inside_is_validated() {
+        let err = through_the_wire(batch_message(65)).expect_err("too large");
+        assert_eq!(err.to_string(), "batch.count 65 above the limit 64");
+    }
+}

@@ -1,0 +1,414 @@
+//! Registration and evaluation reports: the learner service's unary messages.
+
+use std::borrow::Cow;
+
+use hac_core::LevelDims;
+
+use crate::{WireError, pb};
+
+/// What an actor process does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ActorRole {
+    /// Runs training episodes with the behaviour policy and streams transitions.
+    Trainer,
+    /// Runs greedy test episodes only and reports success rates.
+    Evaluator,
+}
+
+/// An actor introducing itself (`pb::RegisterRequest`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Registration {
+    /// Stable, operator-chosen name, unique among live actors.
+    pub actor_id: String,
+    pub role: ActorRole,
+    /// Host name as the actor sees it; empty if unknown (then no shared memory is offered).
+    pub hostname: String,
+    /// Transports the actor can use, e.g. "grpc", "shm"; unknown names are the learner's to skip.
+    pub transports: Vec<String>,
+}
+
+/// The learner's answer to a [`Registration`] (`pb::RegisterResponse`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Admission {
+    /// Fresh for every registration, never 0.
+    pub incarnation: u64,
+    /// The run's resolved configuration as TOML (the learner is its single source of truth).
+    pub run_config_toml: String,
+    /// SHA-256 of `run_config_toml`, hex.
+    pub run_config_digest: String,
+    /// Seed of the actor's random streams.
+    pub seed: u64,
+    /// Dimensions of each level, level 0 first; at least one level.
+    pub levels: Vec<LevelDims>,
+    /// Largest number of transitions the learner accepts in one batch, at least 1.
+    pub max_batch_transitions: usize,
+    /// Actors refuse to act on weights more than this many versions behind the newest they know.
+    pub max_weights_lag: u64,
+}
+
+/// Results of greedy test episodes (`pb::EvaluationReport`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Evaluation {
+    pub actor_id: String,
+    pub incarnation: u64,
+    pub weights_version: u64,
+    /// At least 1.
+    pub episodes: u32,
+    /// At most `episodes`.
+    pub successes: u32,
+}
+
+impl From<ActorRole> for pb::ActorRole {
+    fn from(role: ActorRole) -> Self {
+        match role {
+            ActorRole::Trainer => Self::Trainer,
+            ActorRole::Evaluator => Self::Evaluator,
+        }
+    }
+}
+
+impl TryFrom<pb::RegisterRequest> for Registration {
+    type Error = WireError;
+
+    fn try_from(msg: pb::RegisterRequest) -> Result<Self, WireError> {
+        if msg.actor_id.is_empty() {
+            return Err(WireError::missing("register_request.actor_id"));
+        }
+        Ok(Self {
+            role: role_from_pb(msg.role)?,
+            actor_id: msg.actor_id,
+            hostname: msg.hostname,
+            transports: msg.transports,
+        })
+    }
+}
+
+impl From<Registration> for pb::RegisterRequest {
+    fn from(registration: Registration) -> Self {
+        Self {
+            actor_id: registration.actor_id,
+            role: pb::ActorRole::from(registration.role).into(),
+            hostname: registration.hostname,
+            transports: registration.transports,
+        }
+    }
+}
+
+fn role_from_pb(value: i32) -> Result<ActorRole, WireError> {
+    match pb::ActorRole::try_from(value) {
+        Ok(pb::ActorRole::Trainer) => Ok(ActorRole::Trainer),
+        Ok(pb::ActorRole::Evaluator) => Ok(ActorRole::Evaluator),
+        Ok(pb::ActorRole::Unspecified) => Err(WireError::missing("register_request.role")),
+        Err(_) => Err(WireError::UnknownEnum {
+            field: "register_request.role",
+            value,
+        }),
+    }
+}
+
+/// Every dimension must be positive.
+impl TryFrom<pb::LevelDims> for LevelDims {
+    type Error = WireError;
+
+    fn try_from(msg: pb::LevelDims) -> Result<Self, WireError> {
+        level_dims_from_pb(msg, || Cow::Borrowed("level_dims"))
+    }
+}
+
+/// # Panics
+/// If a dimension exceeds `u32::MAX`.
+impl From<LevelDims> for pb::LevelDims {
+    fn from(dims: LevelDims) -> Self {
+        let wire = |dim: usize| u32::try_from(dim).expect("a level dimension fits the wire's u32");
+        Self {
+            state: wire(dims.state),
+            goal: wire(dims.goal),
+            action: wire(dims.action),
+        }
+    }
+}
+
+fn level_dims_from_pb(
+    msg: pb::LevelDims,
+    prefix: impl Fn() -> Cow<'static, str>,
+) -> Result<LevelDims, WireError> {
+    for (name, dim) in [
+        ("state", msg.state),
+        ("goal", msg.goal),
+        ("action", msg.action),
+    ] {
+        if dim == 0 {
+            return Err(WireError::Zero {
+                field: Cow::Owned(format!("{}.{name}", prefix())),
+            });
+        }
+    }
+    Ok(LevelDims {
+        state: msg.state as usize,
+        goal: msg.goal as usize,
+        action: msg.action as usize,
+    })
+}
+
+impl TryFrom<pb::RegisterResponse> for Admission {
+    type Error = WireError;
+
+    fn try_from(msg: pb::RegisterResponse) -> Result<Self, WireError> {
+        if msg.incarnation == 0 {
+            return Err(WireError::missing("register_response.incarnation"));
+        }
+        if msg.run_config_toml.is_empty() {
+            return Err(WireError::missing("register_response.run_config_toml"));
+        }
+        if msg.run_config_digest.is_empty() {
+            return Err(WireError::missing("register_response.run_config_digest"));
+        }
+        if msg.levels.is_empty() {
+            return Err(WireError::missing("register_response.levels"));
+        }
+        if msg.max_batch_transitions == 0 {
+            return Err(WireError::zero("register_response.max_batch_transitions"));
+        }
+        let levels = msg
+            .levels
+            .into_iter()
+            .enumerate()
+            .map(|(level, dims)| {
+                level_dims_from_pb(dims, || {
+                    Cow::Owned(format!("register_response.levels[{level}]"))
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Self {
+            incarnation: msg.incarnation,
+            run_config_toml: msg.run_config_toml,
+            run_config_digest: msg.run_config_digest,
+            seed: msg.seed,
+            levels,
+            max_batch_transitions: msg.max_batch_transitions as usize,
+            max_weights_lag: msg.max_weights_lag,
+        })
+    }
+}
+
+/// # Panics
+/// If `max_batch_transitions` or a dimension exceeds `u32::MAX`.
+impl From<Admission> for pb::RegisterResponse {
+    fn from(admission: Admission) -> Self {
+        Self {
+            incarnation: admission.incarnation,
+            run_config_toml: admission.run_config_toml,
+            run_config_digest: admission.run_config_digest,
+            seed: admission.seed,
+            levels: admission.levels.into_iter().map(Into::into).collect(),
+            max_batch_transitions: u32::try_from(admission.max_batch_transitions)
+                .expect("max_batch_transitions fits the wire's u32"),
+            max_weights_lag: admission.max_weights_lag,
+        }
+    }
+}
+
+impl TryFrom<pb::EvaluationReport> for Evaluation {
+    type Error = WireError;
+
+    fn try_from(msg: pb::EvaluationReport) -> Result<Self, WireError> {
+        if msg.actor_id.is_empty() {
+            return Err(WireError::missing("evaluation_report.actor_id"));
+        }
+        if msg.incarnation == 0 {
+            return Err(WireError::missing("evaluation_report.incarnation"));
+        }
+        if msg.episodes == 0 {
+            return Err(WireError::zero("evaluation_report.episodes"));
+        }
+        if msg.successes > msg.episodes {
+            return Err(WireError::SuccessesAboveEpisodes {
+                successes: msg.successes,
+                episodes: msg.episodes,
+            });
+        }
+        Ok(Self {
+            actor_id: msg.actor_id,
+            incarnation: msg.incarnation,
+            weights_version: msg.weights_version,
+            episodes: msg.episodes,
+            successes: msg.successes,
+        })
+    }
+}
+
+impl From<Evaluation> for pb::EvaluationReport {
+    fn from(evaluation: Evaluation) -> Self {
+        Self {
+            actor_id: evaluation.actor_id,
+            incarnation: evaluation.incarnation,
+            weights_version: evaluation.weights_version,
+            episodes: evaluation.episodes,
+            successes: evaluation.successes,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use prost::Message;
+
+    use super::*;
+
+    /// An expected error message and the change to a valid message that provokes it.
+    type Case<M> = (&'static str, fn(&mut M));
+
+    fn admission() -> Admission {
+        Admission {
+            incarnation: 1,
+            run_config_toml: "[env]\nname = \"pendulum\"\n".into(),
+            run_config_digest: "ab12".into(),
+            seed: 42,
+            levels: vec![
+                LevelDims {
+                    state: 3,
+                    goal: 2,
+                    action: 1,
+                },
+                LevelDims {
+                    state: 3,
+                    goal: 2,
+                    action: 2,
+                },
+            ],
+            max_batch_transitions: 4096,
+            max_weights_lag: 2,
+        }
+    }
+
+    fn registration() -> Registration {
+        Registration {
+            actor_id: "actor-7".into(),
+            role: ActorRole::Evaluator,
+            hostname: "node-1".into(),
+            transports: vec!["grpc".into(), "shm".into()],
+        }
+    }
+
+    fn evaluation() -> Evaluation {
+        Evaluation {
+            actor_id: "eval-0".into(),
+            incarnation: 5,
+            weights_version: 12,
+            episodes: 10,
+            successes: 7,
+        }
+    }
+
+    fn wire<M: Message + Default>(msg: M) -> M {
+        M::decode(msg.encode_to_vec().as_slice()).expect("prost decodes its own bytes")
+    }
+
+    #[test]
+    fn messages_round_trip() {
+        let a = admission();
+        assert_eq!(
+            Admission::try_from(wire(pb::RegisterResponse::from(a.clone()))).unwrap(),
+            a
+        );
+        let r = registration();
+        assert_eq!(
+            Registration::try_from(wire(pb::RegisterRequest::from(r.clone()))).unwrap(),
+            r
+        );
+        let e = evaluation();
+        assert_eq!(
+            Evaluation::try_from(wire(pb::EvaluationReport::from(e.clone()))).unwrap(),
+            e
+        );
+        let dims = a.levels[1];
+        assert_eq!(
+            LevelDims::try_from(pb::LevelDims::from(dims)).unwrap(),
+            dims
+        );
+    }
+
+    #[test]
+    fn zero_dimensions_are_refused() {
+        let err = LevelDims::try_from(pb::LevelDims {
+            state: 3,
+            goal: 0,
+            action: 1,
+        })
+        .expect_err("zero goal");
+        assert_eq!(err.to_string(), "level_dims.goal is 0");
+
+        let mut msg = pb::RegisterResponse::from(admission());
+        msg.levels[1].action = 0;
+        let err = Admission::try_from(msg).expect_err("zero action");
+        assert_eq!(err.to_string(), "register_response.levels[1].action is 0");
+    }
+
+    #[test]
+    fn admissions_need_their_fields() {
+        let cases: [Case<pb::RegisterResponse>; 5] = [
+            ("missing field register_response.incarnation", |m| {
+                m.incarnation = 0
+            }),
+            ("missing field register_response.run_config_toml", |m| {
+                m.run_config_toml.clear()
+            }),
+            ("missing field register_response.run_config_digest", |m| {
+                m.run_config_digest.clear()
+            }),
+            ("missing field register_response.levels", |m| {
+                m.levels.clear()
+            }),
+            ("register_response.max_batch_transitions is 0", |m| {
+                m.max_batch_transitions = 0
+            }),
+        ];
+        for (expected, mutate) in cases {
+            let mut msg = pb::RegisterResponse::from(admission());
+            mutate(&mut msg);
+            assert_eq!(Admission::try_from(msg).unwrap_err().to_string(), expected);
+        }
+    }
+
+    #[test]
+    fn registrations_need_an_actor_and_a_known_role() {
+        let mut msg = pb::RegisterRequest::from(registration());
+        msg.actor_id.clear();
+        let err = Registration::try_from(msg).unwrap_err();
+        assert_eq!(err.to_string(), "missing field register_request.actor_id");
+
+        let mut msg = pb::RegisterRequest::from(registration());
+        msg.role = pb::ActorRole::Unspecified.into();
+        let err = Registration::try_from(msg).unwrap_err();
+        assert_eq!(err.to_string(), "missing field register_request.role");
+
+        let mut msg = pb::RegisterRequest::from(registration());
+        msg.role = 9;
+        let err = Registration::try_from(msg).unwrap_err();
+        assert_eq!(err.to_string(), "register_request.role has unknown value 9");
+    }
+
+    #[test]
+    fn evaluations_are_consistent() {
+        let cases: [Case<pb::EvaluationReport>; 4] = [
+            ("missing field evaluation_report.actor_id", |m| {
+                m.actor_id.clear()
+            }),
+            ("missing field evaluation_report.incarnation", |m| {
+                m.incarnation = 0
+            }),
+            ("evaluation_report.episodes is 0", |m| {
+                m.episodes = 0;
+                m.successes = 0;
+            }),
+            ("evaluation_report.successes 11 above episodes 10", |m| {
+                m.successes = 11
+            }),
+        ];
+        for (expected, mutate) in cases {
+            let mut msg = pb::EvaluationReport::from(evaluation());
+            mutate(&mut msg);
+            assert_eq!(Evaluation::try_from(msg).unwrap_err().to_string(), expected);
+        }
+    }
+}

@@ -1,0 +1,86 @@
+//! HAC's wire contract: the `hac.v1` gRPC code generated from `proto/hac/v1/*.proto`, and the
+//! conversions between its messages and the core types. This is the only crate that knows prost
+//! and tonic's codegen; everything above it works with the domain types below, and every message
+//! coming in is validated here, with a [`WireError`] that names the offending field.
+//!
+//! - [`pb`]: the generated messages, the `Learner` and `Status` clients and servers.
+//! - [`FILE_DESCRIPTOR_SET`]: the compiled protos, for the gRPC reflection service.
+//! - `batch`: transition batches ([`decode_batch`], [`decode_batch_into`], [`encode_batch`],
+//!   [`encode_batch_into`]), checked against the run's [`LevelDims`](hac_core::LevelDims).
+//! - `ingest`: the ingest stream's messages ([`IngestMessage`], [`IngestItem`], [`decode_ingest`]).
+//! - `weights`: [`WeightsSnapshot`] and the [`WeightsWatch`] request.
+//! - `learner`: [`Registration`], [`Admission`] (with the per-level dimensions), [`Evaluation`].
+//! - `error`: [`WireError`].
+//!
+//! Conversions follow one pattern: `TryFrom<pb::X>` for what comes in, `From<X> for pb::X` for
+//! what goes out; batches, which need the run's dimensions to be checked, use functions instead.
+
+mod batch;
+mod error;
+mod ingest;
+mod learner;
+mod weights;
+
+pub use batch::{
+    BatchHeader, DecodedBatch, decode_batch, decode_batch_into, encode_batch, encode_batch_into,
+};
+pub use error::WireError;
+pub use ingest::{IngestItem, IngestMessage, decode_ingest};
+pub use learner::{ActorRole, Admission, Evaluation, Registration};
+pub use weights::{WeightsSnapshot, WeightsWatch};
+
+/// The generated `hac.v1` package: messages, `learner_client`/`learner_server`,
+/// `status_client`/`status_server`.
+pub mod pb {
+    tonic::include_proto!("hac.v1");
+}
+
+/// The serialized `FileDescriptorSet` of the three protos, for `tonic-reflection`.
+pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("hac_v1_descriptor");
+
+#[cfg(test)]
+mod tests {
+    use prost::Message;
+    use prost_types::FileDescriptorSet;
+
+    use super::FILE_DESCRIPTOR_SET;
+
+    #[test]
+    fn the_descriptor_set_lists_the_three_files_and_both_services() {
+        let set = FileDescriptorSet::decode(FILE_DESCRIPTOR_SET).expect("a valid descriptor set");
+        let mut files: Vec<&str> = set.file.iter().map(|f| f.name()).collect();
+        files.sort_unstable();
+        assert_eq!(
+            files,
+            [
+                "hac/v1/learner.proto",
+                "hac/v1/status.proto",
+                "hac/v1/transitions.proto"
+            ]
+        );
+        assert!(set.file.iter().all(|f| f.package() == "hac.v1"));
+
+        let mut services: Vec<String> = set
+            .file
+            .iter()
+            .flat_map(|f| {
+                f.service
+                    .iter()
+                    .map(move |s| format!("{}.{}", f.package(), s.name()))
+            })
+            .collect();
+        services.sort_unstable();
+        assert_eq!(services, ["hac.v1.Learner", "hac.v1.Status"]);
+        let learner = set
+            .file
+            .iter()
+            .flat_map(|f| &f.service)
+            .find(|s| s.name() == "Learner")
+            .expect("the Learner service");
+        let methods: Vec<&str> = learner.method.iter().map(|m| m.name()).collect();
+        assert_eq!(
+            methods,
+            ["Register", "Ingest", "WatchWeights", "ReportEvaluation"]
+        );
+    }
+}
