@@ -85,6 +85,34 @@ pub struct AgentConfig {
 }
 
 impl AgentConfig {
+    /// HAC.md's reference hyperparameters for `levels` levels with horizon `horizon`: lambda 0.3,
+    /// 20% random actions, noise 0.1 of the half range, 3 replay goals, gamma 0.98, 3 hidden
+    /// layers of 64, Adam at 1e-3, batches of 1024, 40 updates per episode, no target networks,
+    /// 200 episodes stored, 50 training episodes then 100 test episodes per round. Environments
+    /// start here and override what ENVS.md sets differently.
+    pub fn reference(levels: usize, horizon: usize) -> Self {
+        Self {
+            levels,
+            horizon,
+            subgoal_test_prob: 0.3,
+            random_action_prob: 0.2,
+            action_noise: Noise::Relative(0.1),
+            subgoal_noise: Noise::Relative(0.1),
+            num_replay_goals: 3,
+            gamma: 0.98,
+            hidden_layers: vec![64, 64, 64],
+            actor_lr: 1e-3,
+            critic_lr: 1e-3,
+            batch_size: 1024,
+            updates_per_episode: 40,
+            target_tau: None,
+            episodes_to_store: 200,
+            replay_capacity_max: 10_000_000,
+            exploration_episodes: 50,
+            test_episodes: 100,
+        }
+    }
+
     /// Replay capacity of `level`, as in the reference: `(1 + replay goals) * H` transitions per
     /// attempt (plus `H / 3` penalties above level 0), `H^(k-1-level)` attempts per episode.
     pub fn replay_capacity(&self, level: usize) -> usize {

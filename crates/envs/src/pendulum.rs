@@ -19,7 +19,7 @@
 
 use std::f32::consts::PI as PI_F32;
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng};
 
 use crate::{StateError, check_physical_state, horizon_covering, wrap_angle};
 
@@ -172,36 +172,18 @@ impl Env for Pendulum {
 
     /// HAC.md's reference values, with ENVS.md's pendulum specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
-        AgentConfig {
-            levels,
-            // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
-            // H^levels covers the 1000-action budget, i.e. ceil(1000^(1/levels)) (the same rule
-            // reproduces 1000, 32 and 10).
-            horizon: match levels {
-                1 => MAX_ACTIONS,
-                2 => 32,
-                3 => 10,
-                k => horizon_covering(MAX_ACTIONS, k),
-            },
-            subgoal_test_prob: 0.3,
-            random_action_prob: 0.2,
-            // ENVS.md: primitive 0.1 and subgoal 0.1, as fractions of the half range.
-            action_noise: Noise::Relative(0.1),
-            subgoal_noise: Noise::Relative(0.1),
-            num_replay_goals: 3,
-            gamma: 0.98,
-            hidden_layers: vec![64, 64, 64],
-            actor_lr: 1e-3,
-            critic_lr: 1e-3,
-            batch_size: 1024,
-            updates_per_episode: 40,
-            // The reference trains without target networks.
-            target_tau: None,
-            episodes_to_store: 200,
-            replay_capacity_max: 10_000_000,
-            exploration_episodes: 50,
-            test_episodes: 100,
-        }
+        // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
+        // H^levels covers the 1000-action budget, i.e. ceil(1000^(1/levels)) (the same rule
+        // reproduces 1000, 32 and 10).
+        let horizon = match levels {
+            1 => MAX_ACTIONS,
+            2 => 32,
+            3 => 10,
+            k => horizon_covering(MAX_ACTIONS, k),
+        };
+        // Everything else is the reference's: noise 0.1 and 0.1 of the half range, 200 episodes
+        // stored, 50 training episodes between test rounds, no target networks.
+        AgentConfig::reference(levels, horizon)
     }
 
     /// q uniform in [pi/4, 7pi/4] (anywhere but near upright), qdot uniform in [-0.05, 0.05].
@@ -304,8 +286,8 @@ mod tests {
         let h: Vec<usize> = (1..=5).map(|k| env.default_config(k).horizon).collect();
         assert_eq!(h, [1000, 32, 10, 6, 4]);
         let c = env.default_config(2);
-        assert_eq!(c.action_noise, Noise::Relative(0.1));
-        assert_eq!(c.subgoal_noise, Noise::Relative(0.1));
+        assert_eq!(c.action_noise, hac_core::Noise::Relative(0.1));
+        assert_eq!(c.subgoal_noise, hac_core::Noise::Relative(0.1));
         assert_eq!(c.episodes_to_store, 200);
         assert_eq!(c.exploration_episodes, 50);
     }

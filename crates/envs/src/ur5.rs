@@ -240,34 +240,19 @@ impl Env for Ur5Reacher {
 
     /// HAC.md's reference values, with ENVS.md's UR5 specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
+        // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
+        // H^levels covers the 600-action budget (that rule gives 9, not 10, for 3 levels).
+        let horizon = match levels {
+            1 => MAX_ACTIONS,
+            2 => 25,
+            3 => 10,
+            k => horizon_covering(MAX_ACTIONS, k),
+        };
         AgentConfig {
-            levels,
-            // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
-            // H^levels covers the 600-action budget (that rule gives 9, not 10, for 3 levels).
-            horizon: match levels {
-                1 => MAX_ACTIONS,
-                2 => 25,
-                3 => 10,
-                k => horizon_covering(MAX_ACTIONS, k),
-            },
-            subgoal_test_prob: 0.3,
-            random_action_prob: 0.2,
             // ENVS.md: primitive 0.1 and subgoal 0.03, as fractions of the half range.
-            action_noise: Noise::Relative(0.1),
             subgoal_noise: Noise::Relative(0.03),
-            num_replay_goals: 3,
-            gamma: 0.98,
-            hidden_layers: vec![64, 64, 64],
-            actor_lr: 1e-3,
-            critic_lr: 1e-3,
-            batch_size: 1024,
-            updates_per_episode: 40,
-            // The reference trains without target networks.
-            target_tau: None,
             episodes_to_store: 500,
-            replay_capacity_max: 10_000_000,
-            exploration_episodes: 50,
-            test_episodes: 100,
+            ..AgentConfig::reference(levels, horizon)
         }
     }
 

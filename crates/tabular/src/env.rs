@@ -1,7 +1,7 @@
 //! The four-rooms task as a [`hac_core::Env`]: cells encoded as f32 `[row, col]`, the primitive
 //! action as one f32 index.
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng, StateError};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, StateError};
 
 use crate::grid::{Cell, Grid, GridError, MOVES};
 
@@ -123,26 +123,8 @@ impl Env for FourRooms {
     /// fields keep the paper's values so that a function-approximation agent can run here too;
     /// the tabular learner ignores them.
     fn default_config(&self, levels: usize) -> AgentConfig {
-        AgentConfig {
-            levels,
-            horizon: horizon_covering(self.spec.max_actions, levels),
-            subgoal_test_prob: 0.3,
-            random_action_prob: 0.2,
-            action_noise: Noise::Relative(0.1),
-            subgoal_noise: Noise::Relative(0.1),
-            num_replay_goals: 3,
-            gamma: 0.98,
-            hidden_layers: vec![64, 64, 64],
-            actor_lr: 1e-3,
-            critic_lr: 1e-3,
-            batch_size: 1024,
-            updates_per_episode: 40,
-            target_tau: None,
-            episodes_to_store: 200,
-            replay_capacity_max: 10_000_000,
-            exploration_episodes: 50,
-            test_episodes: 100,
-        }
+        // HAC.md's reference settings; the network fields are unused by the tabular learner.
+        AgentConfig::reference(levels, horizon_covering(self.spec.max_actions, levels))
     }
 
     fn reset(&mut self, rng: &mut Rng) {

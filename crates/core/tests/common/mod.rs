@@ -3,7 +3,7 @@
 
 use std::collections::VecDeque;
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Exploration, Mode, Noise, Policy, Rng};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Exploration, Mode, Policy, Rng};
 
 /// A point on a line or in a box: `x += action`, clipped to `[-extent, extent]^d`.
 /// The state, end goal and subgoal spaces are all the position itself.
@@ -94,26 +94,7 @@ impl Env for PointEnv {
 }
 
 pub fn agent_config(levels: usize, horizon: usize) -> AgentConfig {
-    AgentConfig {
-        levels,
-        horizon,
-        subgoal_test_prob: 0.3,
-        random_action_prob: 0.2,
-        action_noise: Noise::Relative(0.1),
-        subgoal_noise: Noise::Relative(0.1),
-        num_replay_goals: 3,
-        gamma: 0.98,
-        hidden_layers: vec![64, 64, 64],
-        actor_lr: 1e-3,
-        critic_lr: 1e-3,
-        batch_size: 1024,
-        updates_per_episode: 40,
-        target_tau: None,
-        episodes_to_store: 10,
-        replay_capacity_max: 1_000_000,
-        exploration_episodes: 10,
-        test_episodes: 10,
-    }
+    AgentConfig::reference(levels, horizon)
 }
 
 /// A policy that replays scripted outputs per level (cycling through each level's list).
