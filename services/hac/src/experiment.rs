@@ -31,6 +31,7 @@ pub struct Grid {
     pub out: PathBuf,
     pub config: Option<PathBuf>,
     pub set: Vec<String>,
+    pub overwrite: bool,
 }
 
 /// One finished run.
@@ -69,6 +70,18 @@ pub fn run(grid: Grid) -> Result<()> {
                 },
             )?;
             runs.push(config);
+        }
+    }
+    if !grid.overwrite {
+        let taken = runs
+            .iter()
+            .map(|c| run_path(&grid.out, c))
+            .find(|p| p.join("config.toml").exists());
+        if let Some(taken) = taken {
+            bail!(
+                "{} already holds a run; choose another --out or pass --overwrite",
+                taken.display()
+            );
         }
     }
     std::fs::create_dir_all(&grid.out)
@@ -151,12 +164,16 @@ pub fn run(grid: Grid) -> Result<()> {
     Ok(())
 }
 
-fn run_one(config: &RunConfig, out: &Path) -> Result<Finished> {
-    let dir_path = out.join(format!(
+fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
+    out.join(format!(
         "{}-{}l-seed{}",
         config.env, config.levels, config.seed
-    ));
-    let mut dir = RunDir::create(&dir_path, config)?;
+    ))
+}
+
+fn run_one(config: &RunConfig, out: &Path) -> Result<Finished> {
+    // Existing runs were refused (unless --overwrite) before any run started.
+    let mut dir = RunDir::create(&run_path(out, config), config, true)?;
     let env = hac_envs::make(&config.env)?;
     let options = TrainerOptions {
         seed: config.seed,

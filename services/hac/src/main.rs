@@ -83,6 +83,9 @@ struct ExperimentArgs {
     /// Override one agent hyperparameter for every run (repeatable), as for `hac train`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
+    /// Replace runs already in the output directory.
+    #[arg(long)]
+    overwrite: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -150,6 +153,9 @@ struct TrainArgs {
     /// Print the resolved configuration as TOML and exit.
     #[arg(long)]
     print_config: bool,
+    /// Replace a run already in the run directory.
+    #[arg(long)]
+    overwrite: bool,
 }
 
 #[derive(Debug, Args)]
@@ -188,6 +194,7 @@ fn main() {
             jobs: args.jobs,
             config: args.config,
             set: args.set,
+            overwrite: args.overwrite,
         }),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
@@ -234,7 +241,7 @@ fn train(args: TrainArgs) -> Result<()> {
     let out = args.out.unwrap_or_else(|| {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
-    let mut dir = run_dir::RunDir::create(&out, &run)?;
+    let mut dir = run_dir::RunDir::create(&out, &run, args.overwrite)?;
     let env = hac_envs::make(&run.env)?;
     let options = TrainerOptions {
         seed: run.seed,

@@ -46,8 +46,15 @@ pub struct RunDir {
 }
 
 impl RunDir {
-    /// Creates (or reuses) the directory and writes `config.toml` and the CSV header.
-    pub fn create(path: &Path, config: &RunConfig) -> Result<Self> {
+    /// Creates the directory and writes `config.toml` and the CSV header. A directory that
+    /// already holds a run is refused unless `overwrite`, so results are never lost by accident.
+    pub fn create(path: &Path, config: &RunConfig, overwrite: bool) -> Result<Self> {
+        if !overwrite && path.join("config.toml").exists() {
+            anyhow::bail!(
+                "{} already holds a run; choose another --out or pass --overwrite",
+                path.display()
+            );
+        }
         std::fs::create_dir_all(path)
             .with_context(|| format!("creating run directory {}", path.display()))?;
         write_file(

@@ -79,6 +79,33 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
             && config.contains("test_episodes = 5")
     );
 
+    // A second run into the same directory is refused; --overwrite replaces it.
+    let again = [
+        "train",
+        "--env",
+        "mountain-car",
+        "--episodes",
+        "10",
+        "--set",
+        "test_episodes=2",
+        "--out",
+        out_s,
+    ];
+    let o = hac(&again);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("--overwrite"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(
+        std::fs::read_to_string(out.join("config.toml"))
+            .unwrap()
+            .contains("test_episodes = 5"),
+        "the first run was kept"
+    );
+    let o = hac(&[&again[..], &["--overwrite", "--seed", "3"]].concat());
+    assert!(o.status.success(), "{}", text(&o.stderr));
+
     let o = hac(&["eval", "--run", out_s, "--episodes", "4", "--json"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
@@ -301,6 +328,24 @@ fn experiment_runs_the_grid_and_summarises_it() {
             .count(),
         4,
         "a line per finished run"
+    );
+
+    // Re-running into the same directory is refused before anything runs.
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "mountain-car",
+        "--levels",
+        "2",
+        "--seeds",
+        "1",
+        "--out",
+        out_s,
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("--overwrite"),
+        "{}",
+        text(&o.stderr)
     );
 
     let o = hac(&[
