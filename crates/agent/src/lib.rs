@@ -8,6 +8,7 @@
 //!   the thread count), and greedy test rounds whose success rate is the learning curve.
 
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use hac_core::{
@@ -388,11 +389,14 @@ impl Trainer {
 
     /// Runs the reference schedule for `episodes` training episodes: `exploration_episodes`
     /// training episodes, then a test round of `test_episodes`, repeated. Calls `on_round` after
-    /// each test round; stops early once a round reaches `stop_at` (if given).
+    /// each test round; stops early once a round reaches `stop_at` (if given). Setting `interrupt`
+    /// (e.g. from a signal handler) ends the run after the current episode, without a final test
+    /// round; the agent keeps everything learned so far.
     pub fn run(
         &mut self,
         episodes: u64,
         stop_at: Option<f32>,
+        interrupt: &AtomicBool,
         mut on_round: impl FnMut(&RoundReport),
     ) -> Vec<RoundReport> {
         let mut curve = Vec::new();
@@ -401,6 +405,9 @@ impl Trainer {
         while self.episodes < episodes {
             let block = (self.config.exploration_episodes as u64).min(episodes - self.episodes);
             for _ in 0..block {
+                if interrupt.load(Ordering::Relaxed) {
+                    return curve;
+                }
                 self.train_episode();
             }
             let success_rate = self.test(self.config.test_episodes);

@@ -1,5 +1,7 @@
 //! The embedded trainer end to end: reproducibility and a learning smoke test.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use hac_agent::{RoundReport, Trainer, TrainerOptions};
 
 fn mountain_car(
@@ -17,7 +19,7 @@ fn mountain_car(
         replay_shards: 2,
     };
     let mut trainer = Trainer::new(env, config, options).unwrap();
-    let curve = trainer.run(episodes, None, |_| {});
+    let curve = trainer.run(episodes, None, &AtomicBool::new(false), |_| {});
     let weights = trainer
         .agent()
         .levels()
@@ -67,11 +69,26 @@ fn mountain_car_learns_from_nothing() {
         0.0,
         "an untrained agent should not succeed"
     );
-    let curve = trainer.run(100, None, |_| {});
+    let curve = trainer.run(100, None, &AtomicBool::new(false), |_| {});
     let last: Vec<f32> = curve.iter().rev().take(5).map(|r| r.success_rate).collect();
     let mean = last.iter().sum::<f32>() / last.len() as f32;
     assert!(
         mean >= 0.15,
         "mean test success of the last rounds {mean} ({last:?})"
     );
+}
+
+#[test]
+fn an_interrupt_ends_the_run_after_the_current_episode() {
+    let env = hac_envs::make("mountain-car").unwrap();
+    let mut config = env.default_config(2);
+    config.test_episodes = 2;
+    let mut trainer = Trainer::new(env, config, TrainerOptions::default()).unwrap();
+    let interrupt = AtomicBool::new(false);
+    // Interrupt as the first round is reported: the run stops before another episode starts.
+    let curve = trainer.run(1000, None, &interrupt, |_| {
+        interrupt.store(true, Ordering::Relaxed)
+    });
+    assert_eq!(curve.len(), 1);
+    assert_eq!(trainer.episodes(), 10, "one block of exploration episodes");
 }

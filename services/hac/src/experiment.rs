@@ -9,8 +9,8 @@
 //!   there, and how many did), final success (mean +- std), wall time.
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -32,6 +32,8 @@ pub struct Grid {
     pub config: Option<PathBuf>,
     pub set: Vec<String>,
     pub overwrite: bool,
+    /// Set by SIGINT/SIGTERM: running runs stop and save, queued runs do not start.
+    pub interrupt: Arc<AtomicBool>,
 }
 
 /// One finished run.
@@ -106,7 +108,10 @@ pub fn run(grid: Grid) -> Result<()> {
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(config) = runs.get(i) else { break };
-                    let result = run_one(config, &grid.out);
+                    if grid.interrupt.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    let result = run_one(config, &grid.out, &grid.interrupt);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
                     match &result {
                         Ok(f) => println!(
@@ -171,7 +176,7 @@ fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
     ))
 }
 
-fn run_one(config: &RunConfig, out: &Path) -> Result<Finished> {
+fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Finished> {
     // Existing runs were refused (unless --overwrite) before any run started.
     let mut dir = RunDir::create(&run_path(out, config), config, true)?;
     let env = hac_envs::make(&config.env)?;
@@ -183,7 +188,7 @@ fn run_one(config: &RunConfig, out: &Path) -> Result<Finished> {
     let mut trainer = Trainer::new(env, config.agent.clone(), options)?;
     let started = Instant::now();
     let mut write_error = None;
-    let curve = trainer.run(config.episodes, config.stop_at, |report| {
+    let curve = trainer.run(config.episodes, config.stop_at, interrupt, |report| {
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }

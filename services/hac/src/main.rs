@@ -16,6 +16,8 @@ mod plot;
 mod run_dir;
 
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -183,18 +185,21 @@ fn main() {
     let result = match cli.command {
         Command::Train(args) => train(args),
         Command::Eval(args) => eval(args),
-        Command::Experiment(args) => experiment::run(experiment::Grid {
-            out: args
-                .out
-                .unwrap_or_else(|| PathBuf::from(format!("runs/experiment-{}", args.env))),
-            env: args.env,
-            levels: args.levels,
-            seeds: args.seeds,
-            episodes: args.episodes,
-            jobs: args.jobs,
-            config: args.config,
-            set: args.set,
-            overwrite: args.overwrite,
+        Command::Experiment(args) => interrupt_on_signals().and_then(|interrupt| {
+            experiment::run(experiment::Grid {
+                out: args
+                    .out
+                    .unwrap_or_else(|| PathBuf::from(format!("runs/experiment-{}", args.env))),
+                env: args.env,
+                levels: args.levels,
+                seeds: args.seeds,
+                episodes: args.episodes,
+                jobs: args.jobs,
+                config: args.config,
+                set: args.set,
+                overwrite: args.overwrite,
+                interrupt,
+            })
         }),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
@@ -249,6 +254,7 @@ fn train(args: TrainArgs) -> Result<()> {
         replay_shards: run.replay_shards,
     };
     let mut trainer = Trainer::new(env, run.agent.clone(), options)?;
+    let interrupt = interrupt_on_signals()?;
     println!(
         "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
         run.env,
@@ -262,7 +268,7 @@ fn train(args: TrainArgs) -> Result<()> {
     );
     let started = Instant::now();
     let mut write_error = None;
-    let curve = trainer.run(run.episodes, run.stop_at, |report: &RoundReport| {
+    let curve = trainer.run(run.episodes, run.stop_at, &interrupt, |report: &RoundReport| {
         println!(
             "round {:>3} | episodes {:>5} | success {:>5.1}% | env steps/s {:>9.0} | updates/s {:>7.0} | elapsed {:>7.1}s",
             report.round,
@@ -279,6 +285,12 @@ fn train(args: TrainArgs) -> Result<()> {
     if let Some(e) = write_error {
         return Err(e);
     }
+    if interrupt.load(Ordering::Relaxed) {
+        println!(
+            "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
+            trainer.episodes()
+        );
+    }
     let summary = dir.finish(trainer.agent(), &curve, started.elapsed().as_secs_f64())?;
     println!(
         "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
@@ -292,6 +304,19 @@ fn train(args: TrainArgs) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+/// A flag that SIGINT/SIGTERM set so long runs stop between episodes and save their results; a
+/// second signal while the flag is set exits immediately.
+fn interrupt_on_signals() -> Result<Arc<AtomicBool>> {
+    let flag = Arc::new(AtomicBool::new(false));
+    for &signal in signal_hook::consts::TERM_SIGNALS {
+        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))
+            .context("installing signal handlers")?;
+        signal_hook::flag::register(signal, Arc::clone(&flag))
+            .context("installing signal handlers")?;
+    }
+    Ok(flag)
 }
 
 fn eval(args: EvalArgs) -> Result<()> {

@@ -366,3 +366,46 @@ fn experiment_runs_the_grid_and_summarises_it() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn sigint_stops_training_between_episodes_and_saves_the_run() {
+    use std::io::{BufRead, BufReader};
+    let out = scratch("sigint");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args([
+            "train",
+            "--env",
+            "mountain-car",
+            "--episodes",
+            "1000000",
+            "--set",
+            "exploration_episodes=2",
+        ])
+        .args(["--set", "test_episodes=1", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the hac binary runs");
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    // Wait for the first progress line: training is under way.
+    while !line.starts_with("round ") {
+        line.clear();
+        assert!(
+            stdout.read_line(&mut line).unwrap() > 0,
+            "training ended before a round"
+        );
+    }
+    let kill = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut rest).unwrap();
+    let status = child.wait().unwrap();
+    assert!(status.success(), "exit {status:?}; stdout: {rest}");
+    assert!(rest.contains("interrupted after"), "{rest}");
+    assert!(out.join("weights/level0.safetensors").is_file() && out.join("summary.json").is_file());
+    let _ = std::fs::remove_dir_all(&out);
+}
