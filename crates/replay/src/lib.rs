@@ -5,13 +5,19 @@
 //!   to their fill, straight into a preallocated [`Batch`](hac_core::Batch).
 //! - `ring`: a shard's storage, a fixed-capacity FIFO ring in structure-of-arrays `f32` layout
 //!   (the same layout as `Batch`, so sampling copies contiguous slices).
+//! - [`RateLimiter`] (in `rate_limiter`): one level's updates-per-episode ratio, shared by ingest
+//!   (admission, backpressure) and the level's trainer (one grant per update).
 //! - [`Replay`]: one table per level; the [`TransitionSink`] the hierarchy rollout feeds.
 
 #![forbid(unsafe_code)]
 
+mod rate_limiter;
 mod ring;
 mod table;
 
+pub use rate_limiter::{
+    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, WaitError,
+};
 pub use table::{DimensionMismatch, ReplayTable, SampleError};
 
 use hac_core::{AgentConfig, EnvSpec, Transition, TransitionSink};
