@@ -116,13 +116,7 @@ impl Actor {
     /// which must be consistent with each other and with the metadata.
     pub fn from_safetensors(bytes: &[u8]) -> Result<Self, NnError> {
         let file = TensorReader::new(bytes)?;
-        let format: String = file.meta("format")?;
-        if format != FORMAT {
-            return Err(NnError::Metadata {
-                key: "format".into(),
-                reason: format!("expected `{FORMAT}`, got `{format}`"),
-            });
-        }
+        file.expect_format(FORMAT)?;
         Self::read("", &file)
     }
 

@@ -135,6 +135,18 @@ impl<'a> TensorReader<'a> {
         Ok(())
     }
 
+    /// Checks the `format` metadata entry, so a file of another kind is refused by name.
+    pub fn expect_format(&self, expected: &str) -> Result<(), NnError> {
+        let format: String = self.meta("format")?;
+        if format != expected {
+            return Err(NnError::Metadata {
+                key: "format".into(),
+                reason: format!("expected `{expected}`, got `{format}`"),
+            });
+        }
+        Ok(())
+    }
+
     /// Metadata entry `key`, parsed.
     pub fn meta<T: FromStr>(&self, key: &str) -> Result<T, NnError> {
         let value = self.metadata.get(key).ok_or_else(|| NnError::Metadata {

@@ -327,13 +327,7 @@ impl LevelLearner {
     /// (learning rates, gamma, tau) come from `config`.
     pub fn from_safetensors(config: LearnerConfig, bytes: &[u8]) -> Result<Self, NnError> {
         let file = TensorReader::new(bytes)?;
-        let format: String = file.meta("format")?;
-        if format != FORMAT {
-            return Err(NnError::Metadata {
-                key: "format".into(),
-                reason: format!("expected `{FORMAT}`, got `{format}`"),
-            });
-        }
+        file.expect_format(FORMAT)?;
         let actor = Actor::read("actor.", &file)?;
         let critic = Critic::read("critic.", &file)?;
         check_matches(&config, &actor, &critic)?;
