@@ -7,6 +7,8 @@
 //!   episode (levels update in parallel, each from its own RNG stream, so results do not depend on
 //!   the thread count), and greedy test rounds whose success rate is the learning curve.
 
+mod run_config;
+
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -18,6 +20,8 @@ use hac_core::{
 use hac_nn::{LearnerConfig, LevelLearner, NnError, UpdateStats};
 use hac_replay::{Replay, ReplayTable};
 use serde::{Deserialize, Serialize};
+
+pub use run_config::{RunConfig, RunConfigError};
 
 /// Why an agent could not be built, saved or loaded.
 #[derive(Debug, thiserror::Error)]
@@ -56,6 +60,16 @@ impl Agent {
             })
             .collect();
         Self { levels }
+    }
+
+    /// An agent made of trained level learners, level 0 first.
+    pub fn from_levels(levels: Vec<LevelLearner>) -> Self {
+        Self { levels }
+    }
+
+    /// The level learners, level 0 first.
+    pub fn into_levels(self) -> Vec<LevelLearner> {
+        self.levels
     }
 
     pub fn levels(&self) -> &[LevelLearner] {
@@ -492,11 +506,12 @@ pub fn evaluate(
     )
 }
 
-/// Runs `episodes` greedy test episodes; returns the success rate.
-fn test_episodes(
+/// Runs `episodes` greedy test episodes of `policy`; returns the success rate. The rollout never
+/// consults `exploration` in test mode.
+pub fn test_episodes(
     hierarchy: &mut Hierarchy,
     env: &mut dyn Env,
-    agent: &mut Agent,
+    agent: &mut impl Policy,
     exploration: &mut GaussianExploration,
     rng: &mut Rng,
     episodes: usize,

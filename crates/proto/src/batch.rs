@@ -132,68 +132,127 @@ struct Checked {
     len: usize,
 }
 
+/// The parts of a batch every check looks at, whatever its representation.
+struct Fields<'a> {
+    level: u32,
+    count: u32,
+    states: &'a [f32],
+    actions: &'a [f32],
+    next_states: &'a [f32],
+    goals: &'a [f32],
+    rewards: &'a [f32],
+    terminals: usize,
+}
+
+impl Fields<'_> {
+    /// Level range, count, every field's length, finite floats; the level's dimensions if all
+    /// pass.
+    fn check(&self, dims: &[LevelDims], max_count: usize) -> Result<LevelDims, WireError> {
+        let level_dims =
+            dims.get(self.level as usize)
+                .copied()
+                .ok_or(WireError::LevelOutOfRange {
+                    level: self.level,
+                    levels: dims.len(),
+                })?;
+        let count = self.count as usize;
+        if count == 0 {
+            return Err(WireError::zero("batch.count"));
+        }
+        if count > max_count {
+            return Err(WireError::CountAboveLimit {
+                count: self.count,
+                limit: max_count,
+            });
+        }
+        let vectors: [(&'static str, &[f32], &'static str, usize); 4] = [
+            ("batch.states", self.states, "state", level_dims.state),
+            ("batch.actions", self.actions, "action", level_dims.action),
+            (
+                "batch.next_states",
+                self.next_states,
+                "state",
+                level_dims.state,
+            ),
+            ("batch.goals", self.goals, "goal", level_dims.goal),
+        ];
+        for &(field, values, dim_name, dim) in &vectors {
+            let expected = count.saturating_mul(dim);
+            if values.len() != expected {
+                return Err(WireError::WrongLength {
+                    field,
+                    len: values.len(),
+                    expected,
+                    count,
+                    dim_name,
+                    dim,
+                });
+            }
+        }
+        for (field, len) in [
+            ("batch.rewards", self.rewards.len()),
+            ("batch.terminals", self.terminals),
+        ] {
+            if len != count {
+                return Err(WireError::WrongCount { field, len, count });
+            }
+        }
+        // The value scans run branch-free over the whole field so that they vectorise (an early
+        // exit does not); the offending index is searched for only once a batch is known to be
+        // bad.
+        for &(field, values, _, _) in &vectors {
+            check_finite(field, values)?;
+        }
+        check_finite("batch.rewards", self.rewards)?;
+        Ok(level_dims)
+    }
+}
+
+/// Validates a batch built in this process (the in-process transport) exactly as
+/// [`decode_batch`] validates one from the wire: level range, count, lengths, finite values,
+/// terminals 0.0 or 1.0.
+pub fn check_batch(
+    level: usize,
+    batch: &Batch,
+    dims: &[LevelDims],
+    max_count: usize,
+) -> Result<(), WireError> {
+    let fields = Fields {
+        level: u32::try_from(level).unwrap_or(u32::MAX),
+        count: u32::try_from(batch.len).unwrap_or(u32::MAX),
+        states: &batch.states,
+        actions: &batch.actions,
+        next_states: &batch.next_states,
+        goals: &batch.goals,
+        rewards: &batch.rewards,
+        terminals: batch.terminals.len(),
+    };
+    fields.check(dims, max_count)?;
+    if let Some(index) = batch.terminals.iter().position(|&t| t != 0.0 && t != 1.0) {
+        return Err(WireError::BadTerminal {
+            index,
+            value: batch.terminals[index],
+        });
+    }
+    Ok(())
+}
+
 fn validate(
     msg: &pb::TransitionBatch,
     dims: &[LevelDims],
     max_count: usize,
 ) -> Result<Checked, WireError> {
-    let level_dims = dims
-        .get(msg.level as usize)
-        .copied()
-        .ok_or(WireError::LevelOutOfRange {
-            level: msg.level,
-            levels: dims.len(),
-        })?;
-    let count = msg.count as usize;
-    if count == 0 {
-        return Err(WireError::zero("batch.count"));
-    }
-    if count > max_count {
-        return Err(WireError::CountAboveLimit {
-            count: msg.count,
-            limit: max_count,
-        });
-    }
-
-    let vectors: [(&'static str, &[f32], &'static str, usize); 4] = [
-        ("batch.states", &msg.states, "state", level_dims.state),
-        ("batch.actions", &msg.actions, "action", level_dims.action),
-        (
-            "batch.next_states",
-            &msg.next_states,
-            "state",
-            level_dims.state,
-        ),
-        ("batch.goals", &msg.goals, "goal", level_dims.goal),
-    ];
-    for &(field, values, dim_name, dim) in &vectors {
-        let expected = count.saturating_mul(dim);
-        if values.len() != expected {
-            return Err(WireError::WrongLength {
-                field,
-                len: values.len(),
-                expected,
-                count,
-                dim_name,
-                dim,
-            });
-        }
-    }
-    for (field, len) in [
-        ("batch.rewards", msg.rewards.len()),
-        ("batch.terminals", msg.terminals.len()),
-    ] {
-        if len != count {
-            return Err(WireError::WrongCount { field, len, count });
-        }
-    }
-
-    // The value scans run branch-free over the whole field so that they vectorise (an early exit
-    // does not); the offending index is searched for only once a batch is known to be bad.
-    for &(field, values, _, _) in &vectors {
-        check_finite(field, values)?;
-    }
-    check_finite("batch.rewards", &msg.rewards)?;
+    let fields = Fields {
+        level: msg.level,
+        count: msg.count,
+        states: &msg.states,
+        actions: &msg.actions,
+        next_states: &msg.next_states,
+        goals: &msg.goals,
+        rewards: &msg.rewards,
+        terminals: msg.terminals.len(),
+    };
+    let level_dims = fields.check(dims, max_count)?;
     if msg.terminals.iter().fold(0, |max, &t| max.max(t)) > 1 {
         let index = msg
             .terminals
@@ -202,7 +261,7 @@ fn validate(
             .unwrap_or_default();
         return Err(WireError::BadTerminal {
             index,
-            value: msg.terminals[index],
+            value: f32::from(msg.terminals[index]),
         });
     }
 
@@ -212,7 +271,7 @@ fn validate(
             weights_version: msg.weights_version,
         },
         dims: level_dims,
-        len: count,
+        len: msg.count as usize,
     })
 }
 

@@ -44,7 +44,7 @@ pub enum WireError {
         value: f32,
     },
     #[error("batch.terminals[{index}] is {value}, expected 0 or 1")]
-    BadTerminal { index: usize, value: u8 },
+    BadTerminal { index: usize, value: f32 },
     #[error("weights.levels has level {level} twice")]
     DuplicateLevel { level: u32 },
     /// Levels must be exactly `0..levels`; `level` is the first one absent.
@@ -59,13 +59,13 @@ pub enum WireError {
 }
 
 impl WireError {
-    pub(crate) fn missing(field: &'static str) -> Self {
+    pub fn missing(field: &'static str) -> Self {
         Self::MissingField {
             field: Cow::Borrowed(field),
         }
     }
 
-    pub(crate) fn zero(field: &'static str) -> Self {
+    pub fn zero(field: &'static str) -> Self {
         Self::Zero {
             field: Cow::Borrowed(field),
         }

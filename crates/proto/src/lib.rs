@@ -22,7 +22,8 @@ mod learner;
 mod weights;
 
 pub use batch::{
-    BatchHeader, DecodedBatch, decode_batch, decode_batch_into, encode_batch, encode_batch_into,
+    BatchHeader, DecodedBatch, check_batch, decode_batch, decode_batch_into, encode_batch,
+    encode_batch_into,
 };
 pub use error::WireError;
 pub use ingest::{IngestItem, IngestMessage, decode_ingest};

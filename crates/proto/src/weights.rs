@@ -9,6 +9,10 @@ use crate::{WireError, pb};
 pub struct WeightsSnapshot {
     pub version: u64,
     pub levels: Vec<Vec<u8>>,
+    /// Training episodes whose updates every level had completed when this was taken.
+    pub episodes: u64,
+    /// The run is over; actors stop after this snapshot.
+    pub run_finished: bool,
 }
 
 /// Accepts the levels in any order but requires exactly the levels `0..n`, each once, each with
@@ -43,6 +47,8 @@ impl TryFrom<pb::Weights> for WeightsSnapshot {
         Ok(Self {
             version: msg.version,
             levels,
+            episodes: msg.episodes,
+            run_finished: msg.run_finished,
         })
     }
 }
@@ -60,6 +66,8 @@ impl From<WeightsSnapshot> for pb::Weights {
                     actor_safetensors,
                 })
                 .collect(),
+            episodes: snapshot.episodes,
+            run_finished: snapshot.run_finished,
         }
     }
 }
@@ -116,7 +124,11 @@ mod tests {
     }
 
     fn weights(levels: Vec<pb::LevelWeights>) -> pb::Weights {
-        pb::Weights { version: 4, levels }
+        pb::Weights {
+            version: 4,
+            levels,
+            ..Default::default()
+        }
     }
 
     proptest! {
@@ -124,8 +136,10 @@ mod tests {
         fn snapshots_round_trip(
             version in any::<u64>(),
             levels in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 1..64), 1..5),
+            episodes in any::<u64>(),
+            run_finished in any::<bool>(),
         ) {
-            let snapshot = WeightsSnapshot { version, levels };
+            let snapshot = WeightsSnapshot { version, levels, episodes, run_finished };
             let bytes = pb::Weights::from(snapshot.clone()).encode_to_vec();
             let decoded = pb::Weights::decode(bytes.as_slice()).expect("prost decodes its own bytes");
             prop_assert_eq!(WeightsSnapshot::try_from(decoded).expect("valid"), snapshot);

@@ -3,7 +3,7 @@
 use std::fmt;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
-use hac_core::{Batch, LevelDims, Rng, Transition};
+use hac_core::{Batch, LevelDims, Rng, Transition, TransitionKind};
 use parking_lot::Mutex;
 
 use crate::ring::Ring;
@@ -199,6 +199,37 @@ impl ReplayTable {
         shard.inserted.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// Stores every transition of `batch` in shard `shard`, taking the shard's lock once. The
+    /// batch must have this table's dimensions (checked by a debug assertion; ingest validates
+    /// batches before they get here).
+    ///
+    /// # Panics
+    /// If `shard >= self.shard_count()`.
+    pub fn insert_batch_into(&self, shard: usize, batch: &Batch) {
+        debug_assert_eq!(batch.dims, self.dims, "batch does not fit the replay table");
+        let LevelDims {
+            state,
+            action,
+            goal,
+        } = self.dims;
+        let shard = &self.shards[shard].0;
+        let mut ring = shard.ring.lock();
+        for j in 0..batch.len {
+            ring.push(&Transition {
+                kind: TransitionKind::HindsightAction,
+                state: &batch.states[j * state..(j + 1) * state],
+                action: &batch.actions[j * action..(j + 1) * action],
+                reward: batch.rewards[j],
+                next_state: &batch.next_states[j * state..(j + 1) * state],
+                goal: &batch.goals[j * goal..(j + 1) * goal],
+                terminal: batch.terminals[j] != 0.0,
+            });
+        }
+        shard
+            .inserted
+            .fetch_add(batch.len as u64, Ordering::Relaxed);
+    }
+
     /// [`insert`](Self::insert) for untrusted input: rejects a transition whose dimensions do not
     /// match, naming the field.
     pub fn try_insert(&self, t: &Transition<'_>) -> Result<(), DimensionMismatch> {
@@ -377,6 +408,26 @@ mod tests {
 
         table.insert(&transition(&fields(6)));
         assert_eq!(ids_oldest_first(&table, 0), [3, 4, 5, 6]);
+    }
+
+    #[test]
+    fn batch_insert_stores_rows_in_order_and_wraps() {
+        let table = ReplayTable::new(DIMS, 4, 2);
+        let mut batch = Batch::zeros(DIMS, 3);
+        for (j, id) in (10..13).enumerate() {
+            let f = fields(id);
+            batch.states[j * 3..j * 3 + 3].copy_from_slice(&f.state);
+            batch.actions[j] = f.action[0];
+            batch.rewards[j] = f.reward;
+            batch.next_states[j * 3..j * 3 + 3].copy_from_slice(&f.next_state);
+            batch.goals[j * 2..j * 2 + 2].copy_from_slice(&f.goal);
+            batch.terminals[j] = f32::from(u8::from(f.terminal));
+        }
+        // Shard 1 holds 2 rows: the batch's first row is overwritten by its third.
+        table.insert_batch_into(1, &batch);
+        assert_eq!(ids_oldest_first(&table, 1), [11, 12]);
+        assert_eq!(table.shard_lens().collect::<Vec<_>>(), [0, 2]);
+        assert_eq!(table.inserted_total(), 3);
     }
 
     #[test]

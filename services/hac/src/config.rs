@@ -5,30 +5,9 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use hac_core::AgentConfig;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
-/// Everything that defines a training run; written to `<out>/config.toml`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct RunConfig {
-    /// Built-in environment name (`hac train --help` lists them).
-    pub env: String,
-    /// Number of levels (1 = flat DDPG + HER).
-    pub levels: usize,
-    /// Seed of every random stream.
-    pub seed: u64,
-    /// Training episodes in total.
-    pub episodes: u64,
-    /// Stop once a test round reaches this success rate.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub stop_at: Option<f32>,
-    /// Threads for per-level updates (1 = single-threaded, bit-reproducible either way).
-    pub threads: usize,
-    /// Replay shards per level.
-    pub replay_shards: usize,
-    /// HAC hyperparameters (defaults: the environment's, for this number of levels).
-    pub agent: AgentConfig,
-}
+pub use hac_agent::RunConfig;
 
 /// The top level of a config file: every key optional.
 #[derive(Debug, Default, Deserialize)]
@@ -161,10 +140,7 @@ fn parse_value(key: &str, value: &str) -> Result<toml::Value> {
 
 /// Reads a run directory's `config.toml`.
 pub fn load_run(dir: &Path) -> Result<RunConfig> {
-    let path = dir.join("config.toml");
-    let text = std::fs::read_to_string(&path)
-        .with_context(|| format!("reading {} (is this a run directory?)", path.display()))?;
-    toml::from_str(&text).with_context(|| format!("in {}", path.display()))
+    Ok(RunConfig::load_run(dir)?)
 }
 
 #[cfg(test)]

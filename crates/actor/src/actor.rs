@@ -1,0 +1,359 @@
+//! [`run_actor`]: the actor loop, written against [`ActorLink`] so that the embedded run, the
+//! actor daemon and tests run the same code.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use hac_agent::{RunConfig, RunConfigError, test_episodes};
+use hac_core::{GaussianExploration, Hierarchy, Mode, Rng};
+use hac_proto::{ActorRole, IngestItem, Registration, WeightsSnapshot};
+use hac_transport::{ActorLink, LinkError};
+
+use crate::{Adder, SnapshotError, SnapshotPolicy};
+
+/// How an actor runs. The run's config (environment, levels, hyperparameters) comes from the
+/// learner at registration; these are the actor's own settings.
+#[derive(Debug, Clone)]
+pub struct ActorOptions {
+    /// Stable name, unique among live actors (e.g. the pod or host name plus an index).
+    pub actor_id: String,
+    pub role: ActorRole,
+    /// This host's name (the learner offers shared memory to same-host actors).
+    pub hostname: String,
+    /// Transports this actor can use.
+    pub transports: Vec<String>,
+    /// Trainers: before each episode, wait until the learner has finished the updates owed for
+    /// every episode this actor sent. With one actor this is exactly the paper's schedule
+    /// (results do not depend on timing); with many it slows everyone to the learner's pace.
+    pub lockstep: bool,
+    /// Trainers: run `test_episodes` greedy episodes after every this many training episodes
+    /// (and after the last) and report them, as the embedded schedule does. Evaluators:
+    /// evaluate whenever the learner has trained this many more episodes [default for
+    /// evaluators: the run's `exploration_episodes`].
+    pub eval_every_episodes: Option<u64>,
+    /// Trainers: stop after this many training episodes [default: when the run finishes].
+    pub max_episodes: Option<u64>,
+    /// Give up if no usable weights arrive for this long [default: wait as long as it takes].
+    pub weights_timeout: Option<Duration>,
+    /// Transitions per batch sent (capped by the learner's limit).
+    pub batch_transitions: usize,
+}
+
+impl ActorOptions {
+    /// A trainer named `actor_id` with the defaults.
+    pub fn trainer(actor_id: impl Into<String>) -> Self {
+        Self {
+            actor_id: actor_id.into(),
+            role: ActorRole::Trainer,
+            hostname: String::new(),
+            transports: vec!["grpc".into()],
+            lockstep: false,
+            eval_every_episodes: None,
+            max_episodes: None,
+            weights_timeout: None,
+            batch_transitions: 1024,
+        }
+    }
+
+    /// An evaluator named `actor_id` with the defaults.
+    pub fn evaluator(actor_id: impl Into<String>) -> Self {
+        Self {
+            role: ActorRole::Evaluator,
+            ..Self::trainer(actor_id)
+        }
+    }
+}
+
+/// Why the actor stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ActorError {
+    #[error(transparent)]
+    Link(LinkError),
+    #[error(transparent)]
+    Config(#[from] RunConfigError),
+    #[error(transparent)]
+    Snapshot(#[from] SnapshotError),
+    #[error("the learner's run config does not match its level dimensions: {0}")]
+    Mismatch(String),
+    #[error("no usable weights within {0:?}")]
+    WeightsTimeout(Duration),
+}
+
+/// What the actor did, returned when it stops.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ActorSummary {
+    pub incarnation: u64,
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub successes: u64,
+    pub evaluations: u64,
+    /// The last weights version the actor acted with.
+    pub weights_version: u64,
+    /// The learner said the run is over (rather than the actor's own limit or an interrupt).
+    pub run_finished: bool,
+}
+
+/// One evaluation the actor ran and reported.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvaluationEvent {
+    pub weights_version: u64,
+    /// Training episodes the evaluated weights had been trained on.
+    pub trained_episodes: u64,
+    pub success_rate: f32,
+}
+
+/// Registers through `link` and runs until the run finishes, `max_episodes` are done or
+/// `interrupt` is set (checked between episodes). Calls `on_evaluation` after each reported
+/// evaluation.
+pub fn run_actor(
+    link: &mut dyn ActorLink,
+    options: &ActorOptions,
+    interrupt: &AtomicBool,
+    on_evaluation: impl FnMut(&EvaluationEvent),
+) -> Result<ActorSummary, ActorError> {
+    let admission = link
+        .register(&Registration {
+            actor_id: options.actor_id.clone(),
+            role: options.role,
+            hostname: options.hostname.clone(),
+            transports: options.transports.clone(),
+        })
+        .map_err(ActorError::Link)?;
+    let run = RunConfig::from_toml(&admission.run_config_toml, "the learner's run config")?;
+    let env = run
+        .make_env()
+        .map_err(|e| ActorError::Mismatch(e.to_string()))?;
+    let spec = env.spec().clone();
+    let dims: Vec<_> = (0..run.levels)
+        .map(|l| spec.level_dims(l, run.levels))
+        .collect();
+    if dims != admission.levels {
+        return Err(ActorError::Mismatch(format!(
+            "config implies {dims:?}, the learner announced {:?}",
+            admission.levels
+        )));
+    }
+    let mut root = Rng::seed_from(admission.seed);
+    let state = State {
+        exploration: GaussianExploration::new(&spec, &run.agent, root.fork()),
+        train_rng: root.fork(),
+        test_rng: root.fork(),
+        hierarchy: Hierarchy::new(&spec, &run.agent),
+        adder: Adder::new(
+            &dims,
+            options
+                .batch_transitions
+                .min(admission.max_batch_transitions),
+        ),
+        env,
+        dims,
+        max_weights_lag: admission.max_weights_lag,
+        summary: ActorSummary {
+            incarnation: admission.incarnation,
+            ..ActorSummary::default()
+        },
+        run,
+        on_evaluation,
+    };
+    let mut actor = Actor {
+        link,
+        options,
+        interrupt,
+        s: state,
+    };
+    let result = match options.role {
+        ActorRole::Trainer => actor.train(),
+        ActorRole::Evaluator => actor.evaluate_forever(),
+    };
+    match result {
+        Ok(()) => {}
+        Err(ActorError::Link(LinkError::Finished)) => actor.s.summary.run_finished = true,
+        Err(e) => return Err(e),
+    }
+    Ok(actor.s.summary)
+}
+
+struct State<F> {
+    run: RunConfig,
+    env: Box<dyn hac_core::Env>,
+    dims: Vec<hac_core::LevelDims>,
+    exploration: GaussianExploration,
+    train_rng: Rng,
+    test_rng: Rng,
+    hierarchy: Hierarchy,
+    adder: Adder,
+    max_weights_lag: u64,
+    summary: ActorSummary,
+    on_evaluation: F,
+}
+
+struct Actor<'a, F> {
+    link: &'a mut dyn ActorLink,
+    options: &'a ActorOptions,
+    interrupt: &'a AtomicBool,
+    s: State<F>,
+}
+
+impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
+    fn interrupted(&self) -> bool {
+        self.interrupt.load(Ordering::Relaxed)
+    }
+
+    /// Waits for a snapshot satisfying `ready` (or a final one), in slices so that an interrupt
+    /// is noticed; `None` if interrupted.
+    fn wait_weights(
+        &self,
+        ready: impl Fn(&WeightsSnapshot) -> bool,
+    ) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
+        let started = Instant::now();
+        loop {
+            if self.interrupted() {
+                return Ok(None);
+            }
+            let slice = Duration::from_millis(200);
+            if let Some(w) = self
+                .link
+                .weights()
+                .wait_for(slice, |w| w.run_finished || ready(w))
+            {
+                return Ok(Some(w));
+            }
+            if let Some(limit) = self.options.weights_timeout {
+                if started.elapsed() >= limit {
+                    return Err(ActorError::WeightsTimeout(limit));
+                }
+            }
+        }
+    }
+
+    fn policy_for(
+        &self,
+        current: Option<SnapshotPolicy>,
+        snapshot: &WeightsSnapshot,
+    ) -> Result<SnapshotPolicy, ActorError> {
+        match current {
+            Some(p) if p.version() == snapshot.version => Ok(p),
+            _ => Ok(SnapshotPolicy::from_snapshot(snapshot, &self.s.dims)?),
+        }
+    }
+
+    fn train(&mut self) -> Result<(), ActorError> {
+        let every = self.options.eval_every_episodes;
+        let max = self.options.max_episodes;
+        let mut policy: Option<SnapshotPolicy> = None;
+        let mut last_eval: Option<u64> = None;
+        loop {
+            let sent = self.s.summary.episodes;
+            let snapshot = if self.options.lockstep {
+                self.wait_weights(|w| w.episodes >= sent)?
+            } else {
+                let newest = self.link.learner_version();
+                let lag = self.s.max_weights_lag;
+                self.wait_weights(|w| w.version.saturating_add(lag) >= newest)?
+            };
+            let Some(snapshot) = snapshot else {
+                return Ok(());
+            };
+            let mut p = self.policy_for(policy.take(), &snapshot)?;
+            self.s.summary.weights_version = p.version();
+            let eval_due = every.is_some_and(|n| {
+                sent > 0 && (sent % n.max(1) == 0 || max == Some(sent)) && last_eval != Some(sent)
+            });
+            if eval_due {
+                self.evaluate(&mut p, &snapshot)?;
+                last_eval = Some(sent);
+            }
+            // The evaluation may have finished the run (target reached).
+            let finished = snapshot.run_finished
+                || self.link.weights().latest().is_some_and(|w| w.run_finished);
+            if finished {
+                self.s.summary.run_finished = true;
+                return Ok(());
+            }
+            if max.is_some_and(|m| sent >= m) || self.interrupted() {
+                return Ok(());
+            }
+            let s = &mut self.s;
+            s.adder.set_weights_version(p.version());
+            let outcome = s.hierarchy.run_episode(
+                s.env.as_mut(),
+                &mut p,
+                &mut s.exploration,
+                Mode::Train,
+                &mut s.train_rng,
+                &mut s.adder,
+            );
+            for item in s.adder.drain() {
+                self.link.send(item).map_err(ActorError::Link)?;
+            }
+            self.link
+                .send(IngestItem::Episode {
+                    env_steps: outcome.steps as u64,
+                    success: outcome.success,
+                    weights_version: p.version(),
+                })
+                .map_err(ActorError::Link)?;
+            s.summary.episodes += 1;
+            s.summary.env_steps += outcome.steps as u64;
+            s.summary.successes += u64::from(outcome.success);
+            policy = Some(p);
+        }
+    }
+
+    /// One test round of the run's `test_episodes` with `policy`, reported to the learner.
+    fn evaluate(
+        &mut self,
+        policy: &mut SnapshotPolicy,
+        snapshot: &WeightsSnapshot,
+    ) -> Result<(), ActorError> {
+        let s = &mut self.s;
+        let episodes = s.run.agent.test_episodes.max(1);
+        let rate = test_episodes(
+            &mut s.hierarchy,
+            s.env.as_mut(),
+            policy,
+            &mut s.exploration,
+            &mut s.test_rng,
+            episodes,
+            |_, _| {},
+        );
+        let successes = (rate * episodes as f32).round() as u32;
+        self.link
+            .report_evaluation(snapshot.version, episodes as u32, successes)
+            .map_err(ActorError::Link)?;
+        s.summary.evaluations += 1;
+        (s.on_evaluation)(&EvaluationEvent {
+            weights_version: snapshot.version,
+            trained_episodes: snapshot.episodes,
+            success_rate: rate,
+        });
+        Ok(())
+    }
+
+    fn evaluate_forever(&mut self) -> Result<(), ActorError> {
+        let every = self
+            .options
+            .eval_every_episodes
+            .unwrap_or(self.s.run.agent.exploration_episodes as u64)
+            .max(1);
+        let mut next_at = every;
+        let mut last_version = 0;
+        loop {
+            let Some(snapshot) = self.wait_weights(|w| w.episodes >= next_at)? else {
+                return Ok(());
+            };
+            if snapshot.version != last_version {
+                let mut policy = SnapshotPolicy::from_snapshot(&snapshot, &self.s.dims)?;
+                self.s.summary.weights_version = policy.version();
+                self.evaluate(&mut policy, &snapshot)?;
+                last_version = snapshot.version;
+                next_at = snapshot.episodes + every;
+            }
+            if snapshot.run_finished {
+                self.s.summary.run_finished = true;
+                return Ok(());
+            }
+        }
+    }
+}

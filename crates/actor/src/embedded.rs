@@ -1,0 +1,70 @@
+//! [`train_embedded`]: the whole system in one process, the same learner and actor code as a
+//! distributed run, connected by the in-process transport.
+
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use hac_agent::{Agent, RoundReport, RunConfig};
+use hac_learner::{Learner, LearnerOptions, LearnerStatus, StartError};
+use hac_transport::InProcess;
+
+use crate::{ActorError, ActorOptions, ActorSummary, run_actor};
+
+/// Why an embedded run failed.
+#[derive(Debug, thiserror::Error)]
+pub enum EmbeddedError {
+    #[error(transparent)]
+    Start(#[from] StartError),
+    #[error(transparent)]
+    Actor(#[from] ActorError),
+}
+
+/// What an embedded run produced.
+#[derive(Debug)]
+pub struct EmbeddedRun {
+    pub agent: Agent,
+    /// One point per test round.
+    pub curve: Vec<RoundReport>,
+    pub status: LearnerStatus,
+    pub actor: ActorSummary,
+}
+
+/// Trains `run` with one learner and one lockstep trainer actor in this process: the paper's
+/// schedule exactly (`exploration_episodes` training episodes with `updates_per_episode`
+/// updates per level after each, then a round of `test_episodes` greedy episodes), with the
+/// levels training in parallel on their own threads. Results depend only on the config and
+/// seed. Calls `on_round` after each test round; stops at `run.episodes`, when a round reaches
+/// `run.stop_at`, or (between episodes, without a last test round) when `interrupt` is set.
+pub fn train_embedded(
+    run: &RunConfig,
+    interrupt: &AtomicBool,
+    mut on_round: impl FnMut(&RoundReport),
+) -> Result<EmbeddedRun, EmbeddedError> {
+    let learner = Arc::new(Learner::start(run.clone(), LearnerOptions::for_run(run))?);
+    let mut link = InProcess::new(learner.clone());
+    let options = ActorOptions {
+        lockstep: true,
+        eval_every_episodes: Some(run.agent.exploration_episodes.max(1) as u64),
+        max_episodes: Some(run.episodes),
+        transports: vec!["in-process".into()],
+        ..ActorOptions::trainer("embedded-0")
+    };
+    let mut seen = 0;
+    let actor = run_actor(&mut link, &options, interrupt, |_| {
+        let curve = learner.curve();
+        for report in &curve[seen..] {
+            on_round(report);
+        }
+        seen = curve.len();
+    });
+    drop(link);
+    learner.finish("embedded run over");
+    let learner = Arc::into_inner(learner).expect("the in-process link was the only other owner");
+    let finished = learner.shutdown();
+    Ok(EmbeddedRun {
+        agent: finished.agent,
+        curve: finished.curve,
+        status: finished.status,
+        actor: actor?,
+    })
+}

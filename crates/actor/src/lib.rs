@@ -1,0 +1,20 @@
+//! The HAC actor: the behaviour policy's rollouts, streamed to the learner.
+//!
+//! - [`run_actor`]: registers through an [`ActorLink`](hac_transport::ActorLink), takes the
+//!   run's config from the learner, rolls out training episodes (trainers) or greedy test
+//!   episodes (evaluators), applies new weights between episodes, and respects the staleness
+//!   bound (or, with `lockstep`, waits for the updates its own episodes earned).
+//! - [`Adder`]: packs transitions into per-level batches.
+//! - [`SnapshotPolicy`]: a published weights version as the rollout's policy.
+//! - [`train_embedded`]: learner + one actor in one process over the in-process transport: the
+//!   `hac train` default.
+
+mod actor;
+mod adder;
+mod embedded;
+mod policy;
+
+pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, run_actor};
+pub use adder::Adder;
+pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded};
+pub use policy::{SnapshotError, SnapshotPolicy};

@@ -1,0 +1,91 @@
+//! [`SnapshotPolicy`]: the actor networks of one published weights version, as the rollout's
+//! [`Policy`].
+
+use hac_core::{LevelDims, Policy};
+use hac_nn::{Actor, NnError};
+use hac_proto::WeightsSnapshot;
+
+/// Why a weights snapshot could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotError {
+    #[error("weights version {version} has {got} levels, the run has {expected}")]
+    Levels {
+        version: u64,
+        got: usize,
+        expected: usize,
+    },
+    #[error("weights version {version}, level {level}: {source}")]
+    Decode {
+        version: u64,
+        level: usize,
+        #[source]
+        source: NnError,
+    },
+    #[error(
+        "weights version {version}, level {level}: network is for {got:?}, the run needs {expected:?}"
+    )]
+    Dims {
+        version: u64,
+        level: usize,
+        got: LevelDims,
+        expected: LevelDims,
+    },
+}
+
+/// Inference-only policy: level `i`'s actor network from a [`WeightsSnapshot`].
+#[derive(Debug)]
+pub struct SnapshotPolicy {
+    version: u64,
+    actors: Vec<Actor>,
+}
+
+impl SnapshotPolicy {
+    /// Decodes every level of `snapshot`, checking it against the run's level dimensions.
+    pub fn from_snapshot(
+        snapshot: &WeightsSnapshot,
+        dims: &[LevelDims],
+    ) -> Result<Self, SnapshotError> {
+        let version = snapshot.version;
+        if snapshot.levels.len() != dims.len() {
+            return Err(SnapshotError::Levels {
+                version,
+                got: snapshot.levels.len(),
+                expected: dims.len(),
+            });
+        }
+        let actors = snapshot
+            .levels
+            .iter()
+            .zip(dims)
+            .enumerate()
+            .map(|(level, (bytes, &expected))| {
+                let actor =
+                    Actor::from_safetensors(bytes).map_err(|source| SnapshotError::Decode {
+                        version,
+                        level,
+                        source,
+                    })?;
+                if actor.dims() != expected {
+                    return Err(SnapshotError::Dims {
+                        version,
+                        level,
+                        got: actor.dims(),
+                        expected,
+                    });
+                }
+                Ok(actor)
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Self { version, actors })
+    }
+
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+}
+
+impl Policy for SnapshotPolicy {
+    fn act(&mut self, level: usize, state: &[f32], goal: &[f32], action: &mut [f32]) {
+        self.actors[level].act(state, goal, action);
+    }
+}

@@ -1,0 +1,126 @@
+//! The embedded run (learner + lockstep actor over the in-process transport) end to end:
+//! reproducibility, learning, interrupts.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use hac_actor::{EmbeddedRun, train_embedded};
+use hac_agent::{RoundReport, RunConfig};
+
+fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunConfig {
+    let mut agent = hac_envs::make(env).unwrap().default_config(2);
+    agent.test_episodes = test_episodes;
+    RunConfig {
+        env: env.into(),
+        levels: 2,
+        seed,
+        episodes,
+        stop_at: None,
+        threads: 1,
+        replay_shards: 2,
+        agent,
+    }
+}
+
+fn weights(run: &EmbeddedRun) -> Vec<Vec<u8>> {
+    run.agent
+        .levels()
+        .iter()
+        .map(|l| l.to_safetensors())
+        .collect()
+}
+
+/// Everything but wall-clock fields.
+fn deterministic_part(curve: &[RoundReport]) -> Vec<String> {
+    curve
+        .iter()
+        .map(|r| {
+            let row = r.csv_row();
+            let fields: Vec<&str> = row.split(',').collect();
+            // round, episodes, env_steps, success_rate; then the per-level statistics.
+            [&fields[..4], &fields[7..]].concat().join(",")
+        })
+        .collect()
+}
+
+fn train(config: &RunConfig) -> EmbeddedRun {
+    train_embedded(config, &AtomicBool::new(false), |_| {}).unwrap()
+}
+
+#[test]
+fn same_seed_same_curve_and_weights_bit_for_bit() {
+    let config = run_config("mountain-car", 7, 30, 10);
+    let a = train(&config);
+    let b = train(&config);
+    assert_eq!(a.curve.len(), 3, "a test round every 10 episodes");
+    assert_eq!(
+        a.curve.iter().map(|r| r.episodes).collect::<Vec<_>>(),
+        [10, 20, 30]
+    );
+    // Levels train on their own threads, concurrently with nothing else: timing cannot matter.
+    assert_eq!(deterministic_part(&a.curve), deterministic_part(&b.curve));
+    assert_eq!(weights(&a), weights(&b));
+    // Every transition the actor sent is stored; every episode earned its updates.
+    assert_eq!(a.status.episodes, 30);
+    assert_eq!(a.status.duplicates, 0);
+    assert_eq!(
+        a.status.transitions,
+        a.status
+            .levels
+            .iter()
+            .map(|l| l.transitions_inserted)
+            .sum::<u64>()
+    );
+    let per_episode = config.agent.updates_per_episode as u64;
+    for level in &a.status.levels {
+        assert_eq!(
+            level.updates,
+            level.limiter.credited_episodes * per_episode,
+            "{level:?}"
+        );
+    }
+    let other = train(&run_config("mountain-car", 8, 30, 10));
+    assert_ne!(weights(&a), weights(&other));
+}
+
+#[test]
+fn mountain_car_learns_from_nothing() {
+    // Seed 0: untrained greedy agents never reach the flag; after 100 training episodes the
+    // test success of the last five rounds averages well above 0.15.
+    let run = train(&run_config("mountain-car", 0, 100, 100));
+    assert_eq!(run.curve.len(), 10);
+    let last: Vec<f32> = run
+        .curve
+        .iter()
+        .rev()
+        .take(5)
+        .map(|r| r.success_rate)
+        .collect();
+    let mean = last.iter().sum::<f32>() / last.len() as f32;
+    assert!(
+        mean >= 0.15,
+        "mean test success of the last rounds {mean} ({last:?})"
+    );
+}
+
+#[test]
+fn an_interrupt_ends_the_run_after_the_current_episode() {
+    let config = run_config("mountain-car", 0, 1000, 2);
+    let interrupt = AtomicBool::new(false);
+    // Interrupt as the first round is reported: the run stops before another episode starts.
+    let run = train_embedded(&config, &interrupt, |_| {
+        interrupt.store(true, Ordering::Relaxed)
+    })
+    .unwrap();
+    assert_eq!(run.curve.len(), 1);
+    assert_eq!(run.actor.episodes, 10, "one block of exploration episodes");
+}
+
+#[test]
+fn stop_at_ends_the_run_at_the_first_round_reaching_it() {
+    let mut config = run_config("mountain-car", 0, 1000, 2);
+    config.stop_at = Some(0.0);
+    let run = train(&config);
+    assert_eq!(run.curve.len(), 1);
+    assert!(run.status.finished);
+    assert!(run.actor.run_finished);
+}

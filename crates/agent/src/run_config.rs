@@ -1,0 +1,131 @@
+//! [`RunConfig`]: everything that defines a training run. `hac train` writes it to a run
+//! directory's `config.toml`; the learner daemon hands it to every actor at registration, so the
+//! learner is the run's single source of truth.
+
+use std::path::Path;
+
+use hac_core::AgentConfig;
+use serde::{Deserialize, Serialize};
+
+/// Everything that defines a training run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// Built-in environment name (`hac env list` lists them).
+    pub env: String,
+    /// Number of levels (1 = flat DDPG + HER).
+    pub levels: usize,
+    /// Seed of every random stream.
+    pub seed: u64,
+    /// Training episodes in total.
+    pub episodes: u64,
+    /// Stop once a test round reaches this success rate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_at: Option<f32>,
+    /// Threads for per-level updates in the embedded trainer (results do not depend on it).
+    pub threads: usize,
+    /// Replay shards per level.
+    pub replay_shards: usize,
+    /// HAC hyperparameters (defaults: the environment's, for this number of levels).
+    pub agent: AgentConfig,
+}
+
+/// Why a run configuration could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum RunConfigError {
+    #[error("reading {path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("in {origin}: {message}")]
+    Parse { origin: String, message: String },
+    #[error("invalid value for `{key}`: {message}")]
+    Invalid { key: &'static str, message: String },
+    #[error("in {origin}: {source}")]
+    Env {
+        origin: String,
+        #[source]
+        source: hac_envs::UnknownEnv,
+    },
+    #[error("in {origin}: {source}")]
+    Agent {
+        origin: String,
+        #[source]
+        source: hac_core::ConfigError,
+    },
+}
+
+impl RunConfig {
+    /// The TOML document `config.toml` holds.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("a run config is always representable in TOML")
+    }
+
+    /// Parses and [validates](Self::validate) a TOML document; `origin` names it in errors
+    /// (a path, or "the learner's run config").
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, RunConfigError> {
+        let config: Self = toml::from_str(text).map_err(|e| RunConfigError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        config.validate(origin)?;
+        Ok(config)
+    }
+
+    /// Reads a run directory's `config.toml`.
+    pub fn load_run(dir: &Path) -> Result<Self, RunConfigError> {
+        let path = dir.join("config.toml");
+        let shown = path.display().to_string();
+        let text = std::fs::read_to_string(&path).map_err(|source| RunConfigError::Io {
+            path: format!("{shown} (is this a run directory?)"),
+            source,
+        })?;
+        Self::from_toml(&text, &shown)
+    }
+
+    /// Checks every field, naming the first invalid one.
+    pub fn validate(&self, origin: &str) -> Result<(), RunConfigError> {
+        let invalid = |key, message: String| Err(RunConfigError::Invalid { key, message });
+        if self.levels == 0 || self.levels > 8 {
+            return invalid("levels", format!("{} (must be 1 to 8)", self.levels));
+        }
+        if self.agent.levels != self.levels {
+            return invalid(
+                "agent.levels",
+                format!(
+                    "{} differs from `levels` = {}; set `levels` at the top level",
+                    self.agent.levels, self.levels
+                ),
+            );
+        }
+        if self.threads == 0 {
+            return invalid("threads", "must be at least 1".into());
+        }
+        if self.replay_shards == 0 {
+            return invalid("replay_shards", "must be at least 1".into());
+        }
+        if let Some(s) = self.stop_at {
+            if !(0.0..=1.0).contains(&s) {
+                return invalid("stop_at", format!("{s} (must be a success rate in [0, 1])"));
+            }
+        }
+        let env = hac_envs::make(&self.env).map_err(|source| RunConfigError::Env {
+            origin: origin.to_string(),
+            source,
+        })?;
+        let spec = env.spec();
+        self.agent
+            .validate(spec.action_dim(), spec.subgoal_dim())
+            .map_err(|source| RunConfigError::Agent {
+                origin: origin.to_string(),
+                source,
+            })
+    }
+
+    /// A fresh instance of the run's environment.
+    pub fn make_env(&self) -> Result<Box<dyn hac_core::Env>, hac_envs::UnknownEnv> {
+        hac_envs::make(&self.env)
+    }
+}

@@ -1,0 +1,1052 @@
+//! The HAC learner, independent of any transport: the run's single source of truth.
+//!
+//! - [`Learner::register`] admits an actor (a fresh incarnation, the run's config, a seed).
+//! - [`Learner::ingest`] validates each message (known actor, current incarnation, sequence,
+//!   dimensions, finite values, level range), stores every `(actor, incarnation, sequence)`
+//!   exactly once (resends of stored messages count as duplicates and are acknowledged), and
+//!   routes batches to the actor's replay shard of the batch's level.
+//! - One trainer thread per level takes updates from its [`RateLimiter`] (updates per ingested
+//!   episode, the paper's 40 by default), so training neither runs ahead of the data nor falls
+//!   behind it; [`Learner::wait_for_room`] is the backpressure ingest applies to actors.
+//! - Weights are published as whole-model, versioned [`WeightsSnapshot`]s through a
+//!   [`Published`] cell: whenever every level has caught up with the episodes ingested (so an
+//!   actor that waits for it gets exactly the paper's schedule), when every level has done
+//!   `publish_every_updates` more updates, and otherwise at the latest `max_publish_delay` after
+//!   fresh weights appeared.
+//! - [`Learner::report_evaluation`] collects greedy test results into the learning curve; the
+//!   run finishes when a point reaches `stop_at` or the episode budget is trained (and
+//!   evaluated, if an evaluator is registered). The final snapshot says so, and actors stop.
+//!
+//! Transports (in-process, gRPC) are thin adapters over these methods; they live in
+//! `hac-transport`.
+
+mod published;
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use hac_agent::{Agent, LevelReport, RoundReport, RunConfig};
+use hac_core::{Batch, EnvSpec, LevelDims, Rng};
+use hac_nn::{LevelLearner, UpdateStats};
+use hac_proto::{
+    ActorRole, Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot,
+    WireError, check_batch,
+};
+use hac_replay::{
+    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
+};
+use parking_lot::{Mutex, RwLock};
+use sha2::{Digest, Sha256};
+
+pub use published::Published;
+
+/// How the learner runs (not part of the algorithm's hyperparameters).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnerOptions {
+    /// Largest batch accepted, in transitions; actors learn it at registration.
+    pub max_batch_transitions: usize,
+    /// A level offers fresh weights for publication every this many updates (besides whenever it
+    /// has caught up with the episodes ingested). Default: one episode's worth of updates.
+    pub publish_every_updates: u64,
+    /// Longest time fresh weights of some levels wait for the others before being published.
+    pub max_publish_delay: Duration,
+    /// Handed to actors: they refuse to act on weights more than this many versions behind the
+    /// newest the learner has published.
+    pub max_weights_lag: u64,
+    /// The rate limiter's error buffer, in episodes' worth of updates: how far ingest may run
+    /// ahead of training before actors are held back. At least 1.
+    pub error_buffer_episodes: f64,
+}
+
+impl LearnerOptions {
+    /// Defaults for `run`.
+    pub fn for_run(run: &RunConfig) -> Self {
+        Self {
+            max_batch_transitions: 4096,
+            publish_every_updates: run.agent.updates_per_episode.max(1) as u64,
+            max_publish_delay: Duration::from_millis(100),
+            max_weights_lag: 16,
+            error_buffer_episodes: 2.0,
+        }
+    }
+}
+
+/// Why the learner could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error(transparent)]
+    Config(#[from] hac_agent::RunConfigError),
+    #[error("invalid value for `{key}`: {message}")]
+    Option { key: &'static str, message: String },
+    #[error("level {level}: invalid rate limiter setting `{}`: {source}", source.field())]
+    RateLimiter {
+        level: usize,
+        #[source]
+        source: RateLimiterConfigError,
+    },
+}
+
+/// Why a registration was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RegisterError {
+    #[error("register_request.actor_id is empty")]
+    EmptyActorId,
+    #[error("the run is finished")]
+    Finished,
+}
+
+/// What a rejected input was, for the counts in status. Every rejection is counted under
+/// exactly one reason.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum RejectReason {
+    /// Bytes that do not decode as the expected message (counted by the transport).
+    Malformed,
+    /// A message above the size limit (counted by the transport).
+    Oversized,
+    /// A required field missing or a field of the wrong length or count.
+    InvalidBatch,
+    /// NaN or infinity in a float field.
+    NotFinite,
+    LevelOutOfRange,
+    UnknownActor,
+    StaleIncarnation,
+    SequenceGap,
+    /// Transitions from an evaluator, or an evaluation from an unknown actor.
+    WrongRole,
+    /// Credentials missing or wrong (counted by the transport).
+    Unauthenticated,
+    /// Input after the run finished.
+    Finished,
+}
+
+impl RejectReason {
+    pub const ALL: [RejectReason; 11] = [
+        Self::Malformed,
+        Self::Oversized,
+        Self::InvalidBatch,
+        Self::NotFinite,
+        Self::LevelOutOfRange,
+        Self::UnknownActor,
+        Self::StaleIncarnation,
+        Self::SequenceGap,
+        Self::WrongRole,
+        Self::Unauthenticated,
+        Self::Finished,
+    ];
+
+    /// The snake_case name used in status and metrics.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Malformed => "malformed",
+            Self::Oversized => "oversized",
+            Self::InvalidBatch => "invalid_batch",
+            Self::NotFinite => "not_finite",
+            Self::LevelOutOfRange => "level_out_of_range",
+            Self::UnknownActor => "unknown_actor",
+            Self::StaleIncarnation => "stale_incarnation",
+            Self::SequenceGap => "sequence_gap",
+            Self::WrongRole => "wrong_role",
+            Self::Unauthenticated => "unauthenticated",
+            Self::Finished => "finished",
+        }
+    }
+
+    fn of_wire(e: &WireError) -> Self {
+        match e {
+            WireError::NotFinite { .. } => Self::NotFinite,
+            WireError::LevelOutOfRange { .. } => Self::LevelOutOfRange,
+            WireError::CountAboveLimit { .. } => Self::Oversized,
+            _ => Self::InvalidBatch,
+        }
+    }
+}
+
+/// Why an ingest message or evaluation report was refused. Nothing of a refused message is
+/// stored; the actor's earlier messages are unaffected.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum IngestError {
+    #[error(transparent)]
+    Invalid(#[from] WireError),
+    #[error("unknown actor `{0}`: register first")]
+    UnknownActor(String),
+    #[error(
+        "actor `{actor}`: incarnation {got} is not the current one ({current}); register again"
+    )]
+    StaleIncarnation {
+        actor: String,
+        got: u64,
+        current: u64,
+    },
+    #[error("actor `{actor}`: sequence {got} skips ahead of the next expected sequence {expected}")]
+    SequenceGap {
+        actor: String,
+        got: u64,
+        expected: u64,
+    },
+    #[error("actor `{0}` is an evaluator: evaluators send no transitions")]
+    WrongRole(String),
+    #[error("evaluation_report.weights_version {0} was never published")]
+    UnknownWeightsVersion(u64),
+    #[error("the run is finished")]
+    Finished,
+}
+
+impl IngestError {
+    pub fn reason(&self) -> RejectReason {
+        match self {
+            Self::Invalid(e) => RejectReason::of_wire(e),
+            Self::UnknownActor(_) => RejectReason::UnknownActor,
+            Self::StaleIncarnation { .. } => RejectReason::StaleIncarnation,
+            Self::SequenceGap { .. } => RejectReason::SequenceGap,
+            Self::WrongRole(_) => RejectReason::WrongRole,
+            Self::UnknownWeightsVersion(_) => RejectReason::InvalidBatch,
+            Self::Finished => RejectReason::Finished,
+        }
+    }
+}
+
+/// What became of an accepted ingest message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stored {
+    /// Stored now.
+    New,
+    /// Stored before (a resend); acknowledged again, not stored twice.
+    Duplicate,
+}
+
+/// The backpressure wait ended without room.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum RoomError {
+    #[error("the learner is behind; try again")]
+    TimedOut,
+    #[error("the run is finished")]
+    Finished,
+}
+
+/// One registered actor.
+#[derive(Debug)]
+struct ActorEntry {
+    role: ActorRole,
+    hostname: String,
+    /// Registration order of the actor id (stable across its incarnations): picks its shard.
+    ordinal: u64,
+    incarnation: u64,
+    /// Every sequence up to this one is stored (0: none yet).
+    stored_through: u64,
+    registered_at: Instant,
+    last_seen: Instant,
+    episodes: u64,
+    env_steps: u64,
+    batches: u64,
+    transitions: u64,
+    duplicates: u64,
+    weights_version: u64,
+}
+
+/// A level's trainer output, shared with ingest and the publisher.
+#[derive(Debug)]
+struct LevelSlot {
+    /// The actor network (safetensors) after `weights_updates` updates.
+    weights: Arc<Vec<u8>>,
+    weights_updates: u64,
+    /// Updates finished (granted updates may still be running).
+    completed: u64,
+    /// Episodes ingested whose owed updates are all finished and in `weights`.
+    covered_episodes: u64,
+    last: Option<UpdateStats>,
+}
+
+#[derive(Debug)]
+struct PublisherState {
+    version: u64,
+    published_updates: Vec<u64>,
+    published_episodes: u64,
+    last_publish: Instant,
+    /// `version -> episodes` of every snapshot, to place evaluations on the curve.
+    episodes_of: BTreeMap<u64, u64>,
+}
+
+#[derive(Debug)]
+struct CurveState {
+    points: Vec<RoundReport>,
+    last_at: Instant,
+    last_env_steps: u64,
+    last_updates: u64,
+}
+
+/// Counters for status; monotone.
+#[derive(Debug, Default)]
+struct Counters {
+    messages: AtomicU64,
+    duplicates: AtomicU64,
+    batches: AtomicU64,
+    transitions: AtomicU64,
+    episodes: AtomicU64,
+    successes: AtomicU64,
+    env_steps: AtomicU64,
+    rejected: [AtomicU64; RejectReason::ALL.len()],
+}
+
+#[derive(Debug)]
+struct Shared {
+    run: RunConfig,
+    run_toml: String,
+    digest: String,
+    dims: Vec<LevelDims>,
+    options: LearnerOptions,
+    replay: Replay,
+    limiters: Vec<RateLimiter>,
+    actors: RwLock<HashMap<String, Arc<Mutex<ActorEntry>>>>,
+    next_incarnation: AtomicU64,
+    slots: Vec<Mutex<LevelSlot>>,
+    publisher: Mutex<PublisherState>,
+    weights: Published<WeightsSnapshot>,
+    curve: Mutex<CurveState>,
+    counters: Counters,
+    finished: AtomicBool,
+    started: Instant,
+}
+
+/// A running learner; share it with `Arc`. Call [`shutdown`](Self::shutdown) to stop the
+/// trainers and take the trained agent.
+#[derive(Debug)]
+pub struct Learner {
+    shared: Arc<Shared>,
+    trainers: Mutex<Vec<JoinHandle<LevelLearner>>>,
+}
+
+/// A status snapshot of one level.
+#[derive(Debug, Clone)]
+pub struct LevelStatus {
+    pub updates: u64,
+    pub replay_len: usize,
+    pub replay_capacity: usize,
+    pub shard_lens: Vec<usize>,
+    pub transitions_inserted: u64,
+    pub last: Option<UpdateStats>,
+    pub limiter: RateLimiterStatus,
+}
+
+/// A status snapshot of one actor.
+#[derive(Debug, Clone)]
+pub struct ActorStatus {
+    pub actor_id: String,
+    pub role: ActorRole,
+    pub hostname: String,
+    pub incarnation: u64,
+    pub registered_for: Duration,
+    pub last_seen_ago: Duration,
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub transitions: u64,
+    pub duplicates: u64,
+    pub weights_version: u64,
+}
+
+/// A status snapshot of the learner.
+#[derive(Debug, Clone)]
+pub struct LearnerStatus {
+    pub uptime: Duration,
+    pub run_config_digest: String,
+    pub weights_version: u64,
+    pub finished: bool,
+    pub messages: u64,
+    pub duplicates: u64,
+    pub batches: u64,
+    pub transitions: u64,
+    pub episodes: u64,
+    pub successes: u64,
+    pub env_steps: u64,
+    pub rejected: Vec<(RejectReason, u64)>,
+    pub levels: Vec<LevelStatus>,
+    pub actors: Vec<ActorStatus>,
+}
+
+/// What [`Learner::shutdown`] hands back.
+#[derive(Debug)]
+pub struct FinishedRun {
+    pub agent: Agent,
+    pub curve: Vec<RoundReport>,
+    pub status: LearnerStatus,
+}
+
+impl Learner {
+    /// Validates `run` and `options`, builds replay, rate limiters and networks (seeded from
+    /// `run.seed`), starts one trainer thread per level and publishes weights version 1.
+    pub fn start(run: RunConfig, options: LearnerOptions) -> Result<Self, StartError> {
+        run.validate("the run config")?;
+        let option = |key, message: &str| {
+            Err(StartError::Option {
+                key,
+                message: message.into(),
+            })
+        };
+        if options.max_batch_transitions == 0 || options.max_batch_transitions > 1 << 20 {
+            return option("max_batch_transitions", "must be 1 to 1048576");
+        }
+        if options.publish_every_updates == 0 {
+            return option("publish_every_updates", "must be at least 1");
+        }
+        if !(options.error_buffer_episodes.is_finite() && options.error_buffer_episodes >= 1.0) {
+            return option("error_buffer_episodes", "must be at least 1");
+        }
+        let env = run.make_env().map_err(|e| StartError::Option {
+            key: "env",
+            message: e.to_string(),
+        })?;
+        let spec: EnvSpec = env.spec().clone();
+        let config = &run.agent;
+        let dims: Vec<LevelDims> = (0..config.levels)
+            .map(|l| spec.level_dims(l, config.levels))
+            .collect();
+        let replay = Replay::for_agent(&spec, config, run.replay_shards);
+        let mut limiter_config = RateLimiterConfig::for_agent(config);
+        limiter_config.error_buffer =
+            options.error_buffer_episodes * limiter_config.updates_per_episode.max(1.0);
+        let limiters = (0..config.levels)
+            .map(|level| {
+                RateLimiter::new(limiter_config, replay.table(level).capacity())
+                    .map_err(|source| StartError::RateLimiter { level, source })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+
+        // The same streams as the embedded trainer: networks first, then one sampler stream per
+        // level.
+        let mut root = Rng::seed_from(run.seed);
+        let agent = Agent::new(&spec, config, &mut root);
+        let level_rngs: Vec<Rng> = (0..config.levels).map(|_| root.fork()).collect();
+        let learners = agent.into_levels();
+        let slots = learners
+            .iter()
+            .map(|l| {
+                Mutex::new(LevelSlot {
+                    weights: Arc::new(l.actor().to_safetensors()),
+                    weights_updates: 0,
+                    completed: 0,
+                    covered_episodes: 0,
+                    last: None,
+                })
+            })
+            .collect();
+        let run_toml = run.to_toml();
+        let digest = hex(&Sha256::digest(run_toml.as_bytes()));
+        let levels = config.levels;
+        let batch_size = config.batch_size;
+        let shared = Arc::new(Shared {
+            run,
+            run_toml,
+            digest,
+            dims,
+            options,
+            replay,
+            limiters,
+            actors: RwLock::default(),
+            next_incarnation: AtomicU64::new(1),
+            slots,
+            publisher: Mutex::new(PublisherState {
+                version: 0,
+                published_updates: vec![0; levels],
+                published_episodes: 0,
+                last_publish: Instant::now(),
+                episodes_of: BTreeMap::new(),
+            }),
+            weights: Published::default(),
+            curve: Mutex::new(CurveState {
+                points: Vec::new(),
+                last_at: Instant::now(),
+                last_env_steps: 0,
+                last_updates: 0,
+            }),
+            counters: Counters::default(),
+            finished: AtomicBool::new(false),
+            started: Instant::now(),
+        });
+        shared.publish(false);
+        let trainers = learners
+            .into_iter()
+            .zip(level_rngs)
+            .enumerate()
+            .map(|(level, (learner, rng))| {
+                let shared = shared.clone();
+                let batch = Batch::zeros(shared.dims[level], batch_size);
+                std::thread::Builder::new()
+                    .name(format!("trainer-{level}"))
+                    .spawn(move || shared.train_level(level, learner, rng, batch))
+                    .expect("spawning a trainer thread")
+            })
+            .collect();
+        tracing::info!(
+            env = %shared.run.env,
+            levels,
+            digest = %shared.digest,
+            "learner started"
+        );
+        Ok(Self {
+            shared,
+            trainers: Mutex::new(trainers),
+        })
+    }
+
+    pub fn run_config(&self) -> &RunConfig {
+        &self.shared.run
+    }
+
+    /// Dimensions of each level's transitions, level 0 first.
+    pub fn dims(&self) -> &[LevelDims] {
+        &self.shared.dims
+    }
+
+    pub fn options(&self) -> &LearnerOptions {
+        &self.shared.options
+    }
+
+    /// The weights cell: the latest snapshot, waitable from threads and tasks.
+    pub fn weights(&self) -> &Published<WeightsSnapshot> {
+        &self.shared.weights
+    }
+
+    pub fn is_finished(&self) -> bool {
+        self.shared.finished.load(Ordering::Acquire)
+    }
+
+    /// Admits an actor: a fresh incarnation (an actor id registering again supersedes its
+    /// earlier incarnation, whose messages are refused from now on), the run's config and a
+    /// seed derived from the run's seed, the actor's registration order and the incarnation.
+    pub fn register(&self, registration: Registration) -> Result<Admission, RegisterError> {
+        if registration.actor_id.is_empty() {
+            return Err(RegisterError::EmptyActorId);
+        }
+        if self.is_finished() {
+            return Err(RegisterError::Finished);
+        }
+        let shared = &self.shared;
+        let incarnation = shared.next_incarnation.fetch_add(1, Ordering::Relaxed);
+        let now = Instant::now();
+        let ordinal = {
+            let mut actors = shared.actors.write();
+            let ordinal = actors
+                .get(&registration.actor_id)
+                .map(|e| e.lock().ordinal)
+                .unwrap_or(actors.len() as u64);
+            actors.insert(
+                registration.actor_id.clone(),
+                Arc::new(Mutex::new(ActorEntry {
+                    role: registration.role,
+                    hostname: registration.hostname.clone(),
+                    ordinal,
+                    incarnation,
+                    stored_through: 0,
+                    registered_at: now,
+                    last_seen: now,
+                    episodes: 0,
+                    env_steps: 0,
+                    batches: 0,
+                    transitions: 0,
+                    duplicates: 0,
+                    weights_version: 0,
+                })),
+            );
+            ordinal
+        };
+        tracing::info!(
+            actor = %registration.actor_id,
+            role = ?registration.role,
+            incarnation,
+            "actor registered"
+        );
+        Ok(Admission {
+            incarnation,
+            run_config_toml: shared.run_toml.clone(),
+            run_config_digest: shared.digest.clone(),
+            seed: mix(shared.run.seed, ordinal, incarnation),
+            levels: shared.dims.clone(),
+            max_batch_transitions: shared.options.max_batch_transitions,
+            max_weights_lag: shared.options.max_weights_lag,
+        })
+    }
+
+    /// Backpressure: true if ingest may accept more now. Ingest paths call this (or
+    /// [`wait_for_room`](Self::wait_for_room)) before each message and withhold the ack while
+    /// it says no.
+    pub fn has_room(&self) -> bool {
+        self.wait_for_room(Duration::ZERO).is_ok()
+    }
+
+    /// Waits up to `timeout` until every level's rate limiter admits more ingest.
+    pub fn wait_for_room(&self, timeout: Duration) -> Result<(), RoomError> {
+        let deadline = Instant::now() + timeout;
+        for limiter in &self.shared.limiters {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match limiter.wait_for_room(left) {
+                Ok(()) => {}
+                Err(WaitError::TimedOut) => return Err(RoomError::TimedOut),
+                Err(WaitError::Closed) => return Err(RoomError::Finished),
+            }
+        }
+        Ok(())
+    }
+
+    /// Validates and stores one message of an actor's ingest stream; see the crate docs. On
+    /// error nothing is stored and the rejection is counted.
+    pub fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
+        let result = self.shared.ingest(msg);
+        if let Err(e) = &result {
+            self.count_rejection(e.reason());
+        }
+        result
+    }
+
+    /// Counts a rejection the transport found before the learner saw the message (malformed,
+    /// oversized or unauthenticated input).
+    pub fn count_rejection(&self, reason: RejectReason) {
+        let index = RejectReason::ALL
+            .iter()
+            .position(|&r| r == reason)
+            .expect("every reason is listed");
+        self.shared.counters.rejected[index].fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Adds an evaluator's (or a self-evaluating trainer's) greedy test results to the learning
+    /// curve, at the episode count of the weights version they used; may finish the run.
+    pub fn report_evaluation(&self, evaluation: &Evaluation) -> Result<(), IngestError> {
+        let result = self.shared.report_evaluation(evaluation);
+        if let Err(e) = &result {
+            self.count_rejection(e.reason());
+        }
+        result
+    }
+
+    /// The learning curve so far, one point per evaluation report.
+    pub fn curve(&self) -> Vec<RoundReport> {
+        self.shared.curve.lock().points.clone()
+    }
+
+    /// Ends the run now (interrupt, shutdown): publishes the final snapshot and stops trainers.
+    pub fn finish(&self, why: &str) {
+        self.shared.finish(why);
+    }
+
+    pub fn status(&self) -> LearnerStatus {
+        self.shared.status()
+    }
+
+    /// Finishes the run (if it is not already), waits for the trainer threads and returns the
+    /// trained agent with the curve and final status.
+    pub fn shutdown(self) -> FinishedRun {
+        self.shared.finish("shutdown");
+        let levels: Vec<LevelLearner> = self
+            .trainers
+            .lock()
+            .drain(..)
+            .map(|t| t.join().expect("a trainer thread panicked"))
+            .collect();
+        FinishedRun {
+            agent: Agent::from_levels(levels),
+            curve: self.curve(),
+            status: self.status(),
+        }
+    }
+}
+
+impl Shared {
+    fn actor(&self, id: &str) -> Option<Arc<Mutex<ActorEntry>>> {
+        self.actors.read().get(id).cloned()
+    }
+
+    fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
+        let counters = &self.counters;
+        counters.messages.fetch_add(1, Ordering::Relaxed);
+        let entry = self
+            .actor(&msg.actor_id)
+            .ok_or_else(|| IngestError::UnknownActor(msg.actor_id.clone()))?;
+        let mut actor = entry.lock();
+        if msg.incarnation != actor.incarnation {
+            return Err(IngestError::StaleIncarnation {
+                actor: msg.actor_id.clone(),
+                got: msg.incarnation,
+                current: actor.incarnation,
+            });
+        }
+        actor.last_seen = Instant::now();
+        if msg.sequence == 0 {
+            return Err(WireError::missing("ingest_request.sequence").into());
+        }
+        if msg.sequence <= actor.stored_through {
+            actor.duplicates += 1;
+            counters.duplicates.fetch_add(1, Ordering::Relaxed);
+            return Ok(Stored::Duplicate);
+        }
+        let expected = actor.stored_through + 1;
+        if msg.sequence != expected {
+            return Err(IngestError::SequenceGap {
+                actor: msg.actor_id.clone(),
+                got: msg.sequence,
+                expected,
+            });
+        }
+        if actor.role == ActorRole::Evaluator {
+            return Err(IngestError::WrongRole(msg.actor_id.clone()));
+        }
+        if self.finished.load(Ordering::Acquire) {
+            return Err(IngestError::Finished);
+        }
+        match &msg.item {
+            IngestItem::Batch(decoded) => {
+                check_batch(
+                    decoded.level,
+                    &decoded.batch,
+                    &self.dims,
+                    self.options.max_batch_transitions,
+                )?;
+                let level = decoded.level;
+                let table = self.replay.table(level);
+                // Each actor starts at its own shard and moves on by one per batch: writers
+                // rarely meet, and one actor alone still fills every shard.
+                let shard = (actor.ordinal as usize + actor.batches as usize) % table.shard_count();
+                actor.batches += 1;
+                self.limiters[level].record_insert(decoded.batch.len);
+                table.insert_batch_into(shard, &decoded.batch);
+                actor.transitions += decoded.batch.len as u64;
+                actor.weights_version = actor.weights_version.max(decoded.weights_version);
+                counters.batches.fetch_add(1, Ordering::Relaxed);
+                counters
+                    .transitions
+                    .fetch_add(decoded.batch.len as u64, Ordering::Relaxed);
+            }
+            IngestItem::Episode {
+                env_steps,
+                success,
+                weights_version,
+            } => {
+                actor.episodes += 1;
+                actor.env_steps += env_steps;
+                actor.weights_version = actor.weights_version.max(*weights_version);
+                counters.episodes.fetch_add(1, Ordering::Relaxed);
+                counters
+                    .successes
+                    .fetch_add(u64::from(*success), Ordering::Relaxed);
+                counters.env_steps.fetch_add(*env_steps, Ordering::Relaxed);
+                actor.stored_through = msg.sequence;
+                drop(actor);
+                for level in 0..self.limiters.len() {
+                    self.limiters[level].record_episode();
+                    // A level with nothing owed (its table is still below one batch, or its
+                    // trainer is idle) covers the episode at once.
+                    let mut slot = self.slots[level].lock();
+                    let status = self.limiters[level].status();
+                    if status.updates == slot.completed && status.deficit < 1.0 {
+                        slot.covered_episodes = slot.covered_episodes.max(status.episodes);
+                    }
+                }
+                self.maybe_publish();
+                return Ok(Stored::New);
+            }
+        }
+        actor.stored_through = msg.sequence;
+        Ok(Stored::New)
+    }
+
+    fn report_evaluation(&self, evaluation: &Evaluation) -> Result<(), IngestError> {
+        let entry = self
+            .actor(&evaluation.actor_id)
+            .ok_or_else(|| IngestError::UnknownActor(evaluation.actor_id.clone()))?;
+        {
+            let mut actor = entry.lock();
+            if evaluation.incarnation != actor.incarnation {
+                return Err(IngestError::StaleIncarnation {
+                    actor: evaluation.actor_id.clone(),
+                    got: evaluation.incarnation,
+                    current: actor.incarnation,
+                });
+            }
+            actor.last_seen = Instant::now();
+        }
+        if evaluation.episodes == 0 {
+            return Err(WireError::zero("evaluation_report.episodes").into());
+        }
+        if evaluation.successes > evaluation.episodes {
+            return Err(WireError::SuccessesAboveEpisodes {
+                successes: evaluation.successes,
+                episodes: evaluation.episodes,
+            }
+            .into());
+        }
+        let episodes = {
+            let publisher = self.publisher.lock();
+            match publisher.episodes_of.get(&evaluation.weights_version) {
+                Some(&e) => e,
+                None => {
+                    return Err(IngestError::UnknownWeightsVersion(
+                        evaluation.weights_version,
+                    ));
+                }
+            }
+        };
+        let success_rate = evaluation.successes as f32 / evaluation.episodes as f32;
+        let status = self.status();
+        let env_steps = status.env_steps;
+        let updates: u64 = status.levels.iter().map(|l| l.updates).sum();
+        let report = {
+            let mut curve = self.curve.lock();
+            let dt = curve.last_at.elapsed().as_secs_f64();
+            let rate = |n: u64| if dt > 0.0 { n as f64 / dt } else { 0.0 };
+            let report = RoundReport {
+                round: curve.points.len() + 1,
+                episodes,
+                env_steps,
+                success_rate,
+                elapsed_s: self.started.elapsed().as_secs_f64(),
+                env_steps_per_s: rate(env_steps.saturating_sub(curve.last_env_steps)),
+                updates_per_s: rate(updates.saturating_sub(curve.last_updates)),
+                levels: status
+                    .levels
+                    .iter()
+                    .map(|l| {
+                        let last = l.last.unwrap_or_default();
+                        LevelReport {
+                            updates: l.updates,
+                            replay_len: l.replay_len,
+                            critic_loss: last.critic_loss,
+                            actor_loss: last.actor_loss,
+                            mean_q: last.mean_q,
+                        }
+                    })
+                    .collect(),
+            };
+            curve.points.push(report.clone());
+            curve.last_at = Instant::now();
+            curve.last_env_steps = env_steps;
+            curve.last_updates = updates;
+            report
+        };
+        tracing::debug!(
+            episodes = report.episodes,
+            success = report.success_rate,
+            "evaluation"
+        );
+        if self
+            .run
+            .stop_at
+            .is_some_and(|target| success_rate >= target)
+        {
+            self.finish("target success rate reached");
+        } else if episodes >= self.run.episodes {
+            self.finish("episode budget trained and evaluated");
+        }
+        Ok(())
+    }
+
+    /// The trainer thread of `level`: takes each update the rate limiter grants, offers the
+    /// weights for publication when caught up or every `publish_every_updates`; returns the
+    /// trained networks once the limiter is closed.
+    fn train_level(
+        &self,
+        level: usize,
+        mut learner: LevelLearner,
+        mut rng: Rng,
+        mut batch: Batch,
+    ) -> LevelLearner {
+        let limiter = &self.limiters[level];
+        let table = self.replay.table(level);
+        let every = self.options.publish_every_updates;
+        loop {
+            match limiter.acquire_update(Duration::from_millis(50)) {
+                Ok(()) => {}
+                Err(WaitError::TimedOut) => {
+                    self.maybe_publish();
+                    continue;
+                }
+                Err(WaitError::Closed) => break,
+            }
+            // Granted updates are owed for credited episodes, which need a table holding at
+            // least one batch.
+            table
+                .sample(&mut rng, &mut batch)
+                .expect("an update is granted only once the table holds a batch");
+            let stats = learner.update(&batch);
+            {
+                let mut slot = self.slots[level].lock();
+                slot.completed += 1;
+                slot.last = Some(stats);
+                let status = limiter.status();
+                let caught_up = status.updates == slot.completed && status.deficit < 1.0;
+                if caught_up || slot.completed % every == 0 {
+                    slot.weights = Arc::new(learner.actor().to_safetensors());
+                    slot.weights_updates = slot.completed;
+                }
+                if caught_up {
+                    slot.covered_episodes = slot.covered_episodes.max(status.episodes);
+                }
+            }
+            self.maybe_publish();
+        }
+        learner
+    }
+
+    /// Publishes a snapshot if coverage grew, every level has fresh weights, or some level's
+    /// fresh weights have waited `max_publish_delay`; then checks whether the budget is done.
+    fn maybe_publish(&self) {
+        if self.finished.load(Ordering::Acquire) {
+            return;
+        }
+        let covered = {
+            let mut publisher = self.publisher.lock();
+            let mut covered = u64::MAX;
+            let (mut fresh, mut all_fresh) = (false, true);
+            for (slot, &published) in self.slots.iter().zip(&publisher.published_updates) {
+                let slot = slot.lock();
+                covered = covered.min(slot.covered_episodes);
+                let f = slot.weights_updates > published;
+                fresh |= f;
+                all_fresh &= f;
+            }
+            let due = covered > publisher.published_episodes
+                || (fresh
+                    && (all_fresh
+                        || publisher.last_publish.elapsed() >= self.options.max_publish_delay));
+            if !due {
+                return;
+            }
+            self.publish_locked(&mut publisher, false);
+            covered
+        };
+        if covered >= self.run.episodes && !self.has_evaluator() {
+            self.finish("episode budget trained");
+        }
+    }
+
+    fn has_evaluator(&self) -> bool {
+        self.actors
+            .read()
+            .values()
+            .any(|a| a.lock().role == ActorRole::Evaluator)
+    }
+
+    /// Publishes a snapshot of every level's latest weights as the next version.
+    fn publish(&self, run_finished: bool) {
+        self.publish_locked(&mut self.publisher.lock(), run_finished);
+    }
+
+    fn publish_locked(&self, publisher: &mut PublisherState, run_finished: bool) {
+        let mut levels = Vec::with_capacity(self.slots.len());
+        let mut covered = u64::MAX;
+        for (level, slot) in self.slots.iter().enumerate() {
+            let slot = slot.lock();
+            levels.push(slot.weights.as_ref().clone());
+            publisher.published_updates[level] = slot.weights_updates;
+            covered = covered.min(slot.covered_episodes);
+        }
+        publisher.version += 1;
+        publisher.published_episodes = covered;
+        publisher.last_publish = Instant::now();
+        let version = publisher.version;
+        publisher.episodes_of.insert(version, covered);
+        // Bounded memory in long runs: evaluations refer to recent versions.
+        while publisher.episodes_of.len() > 100_000 {
+            publisher.episodes_of.pop_first();
+        }
+        let snapshot = WeightsSnapshot {
+            version,
+            levels,
+            episodes: covered,
+            run_finished,
+        };
+        self.weights.publish(Arc::new(snapshot));
+    }
+
+    fn finish(&self, why: &str) {
+        if self.finished.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        tracing::info!(reason = why, "run finished");
+        self.publish(true);
+        for limiter in &self.limiters {
+            limiter.close();
+        }
+    }
+
+    fn status(&self) -> LearnerStatus {
+        let c = &self.counters;
+        let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let levels = self
+            .slots
+            .iter()
+            .enumerate()
+            .map(|(level, slot)| {
+                let table = self.replay.table(level);
+                let slot = slot.lock();
+                LevelStatus {
+                    updates: slot.completed,
+                    replay_len: table.len(),
+                    replay_capacity: table.capacity(),
+                    shard_lens: table.shard_lens().collect(),
+                    transitions_inserted: table.inserted_total(),
+                    last: slot.last,
+                    limiter: self.limiters[level].status(),
+                }
+            })
+            .collect();
+        let mut actors: Vec<ActorStatus> = self
+            .actors
+            .read()
+            .iter()
+            .map(|(id, entry)| {
+                let a = entry.lock();
+                ActorStatus {
+                    actor_id: id.clone(),
+                    role: a.role,
+                    hostname: a.hostname.clone(),
+                    incarnation: a.incarnation,
+                    registered_for: a.registered_at.elapsed(),
+                    last_seen_ago: a.last_seen.elapsed(),
+                    episodes: a.episodes,
+                    env_steps: a.env_steps,
+                    transitions: a.transitions,
+                    duplicates: a.duplicates,
+                    weights_version: a.weights_version,
+                }
+            })
+            .collect();
+        actors.sort_by(|a, b| a.actor_id.cmp(&b.actor_id));
+        LearnerStatus {
+            uptime: self.started.elapsed(),
+            run_config_digest: self.digest.clone(),
+            weights_version: self.publisher.lock().version,
+            finished: self.finished.load(Ordering::Acquire),
+            messages: load(&c.messages),
+            duplicates: load(&c.duplicates),
+            batches: load(&c.batches),
+            transitions: load(&c.transitions),
+            episodes: load(&c.episodes),
+            successes: load(&c.successes),
+            env_steps: load(&c.env_steps),
+            rejected: RejectReason::ALL
+                .iter()
+                .zip(&c.rejected)
+                .map(|(&r, n)| (r, load(n)))
+                .collect(),
+            levels,
+            actors,
+        }
+    }
+}
+
+/// A well-mixed 64-bit seed from the run seed, the actor's registration order and incarnation
+/// (SplitMix64 finaliser over each input in turn).
+fn mix(seed: u64, ordinal: u64, incarnation: u64) -> u64 {
+    let mut z = seed;
+    for x in [ordinal, incarnation] {
+        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15).wrapping_add(x);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+    }
+    z
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}

@@ -1,0 +1,104 @@
+//! [`InProcess`]: an [`ActorLink`] that calls a [`Learner`] in the same process.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use hac_learner::{IngestError, Learner, Published, RegisterError, RoomError};
+use hac_proto::{Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot};
+
+use crate::{ActorLink, LinkError};
+
+/// Direct calls into a shared [`Learner`]: registration as is, each item ingested synchronously
+/// after waiting for room (the learner's backpressure), weights read from the learner's own
+/// cell.
+#[derive(Debug)]
+pub struct InProcess {
+    learner: Arc<Learner>,
+    actor_id: String,
+    incarnation: u64,
+    sequence: u64,
+}
+
+impl InProcess {
+    pub fn new(learner: Arc<Learner>) -> Self {
+        Self {
+            learner,
+            actor_id: String::new(),
+            incarnation: 0,
+            sequence: 0,
+        }
+    }
+}
+
+fn refused(e: IngestError) -> LinkError {
+    match e {
+        IngestError::Finished => LinkError::Finished,
+        e => LinkError::Refused(e.to_string()),
+    }
+}
+
+impl ActorLink for InProcess {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        let admission = self
+            .learner
+            .register(registration.clone())
+            .map_err(|e| match e {
+                RegisterError::Finished => LinkError::Finished,
+                e => LinkError::Refused(e.to_string()),
+            })?;
+        self.actor_id = registration.actor_id.clone();
+        self.incarnation = admission.incarnation;
+        self.sequence = 0;
+        Ok(admission)
+    }
+
+    fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
+        if self.incarnation == 0 {
+            return Err(LinkError::Refused("send before register".into()));
+        }
+        loop {
+            match self.learner.wait_for_room(Duration::from_secs(1)) {
+                Ok(()) => break,
+                Err(RoomError::TimedOut) => continue,
+                Err(RoomError::Finished) => return Err(LinkError::Finished),
+            }
+        }
+        self.sequence += 1;
+        let msg = IngestMessage {
+            actor_id: self.actor_id.clone(),
+            incarnation: self.incarnation,
+            sequence: self.sequence,
+            item,
+        };
+        self.learner.ingest(&msg).map(|_| ()).map_err(refused)
+    }
+
+    fn flush(&mut self, _timeout: Duration) -> Result<(), LinkError> {
+        Ok(())
+    }
+
+    fn weights(&self) -> &Published<WeightsSnapshot> {
+        self.learner.weights()
+    }
+
+    fn learner_version(&self) -> u64 {
+        self.learner.weights().latest().map_or(0, |w| w.version)
+    }
+
+    fn report_evaluation(
+        &mut self,
+        weights_version: u64,
+        episodes: u32,
+        successes: u32,
+    ) -> Result<(), LinkError> {
+        self.learner
+            .report_evaluation(&Evaluation {
+                actor_id: self.actor_id.clone(),
+                incarnation: self.incarnation,
+                weights_version,
+                episodes,
+                successes,
+            })
+            .map_err(refused)
+    }
+}

@@ -1,0 +1,66 @@
+//! How an actor reaches the learner: the [`ActorLink`] trait, and its implementations.
+//!
+//! - [`InProcess`]: direct calls into a [`Learner`] in the same process (the embedded `hac train`
+//!   and tests). Nothing is lost in transit, so every message is acknowledged as it is stored.
+//! - gRPC (module `grpc`): the learner service over tonic, for actors on any host.
+//!
+//! The actor loop (`hac-actor`) is written against the trait only, so every transport runs the
+//! same actor code.
+
+mod in_process;
+
+use std::time::Duration;
+
+use hac_learner::Published;
+use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
+
+pub use in_process::InProcess;
+
+/// Why a link operation failed.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum LinkError {
+    /// The run is over: the actor should stop.
+    #[error("the run is finished")]
+    Finished,
+    /// The learner refused a message or registration: a bug or misconfiguration on the actor's
+    /// side, not worth retrying.
+    #[error("the learner refused: {0}")]
+    Refused(String),
+    /// The learner could not be reached within the link's retry policy.
+    #[error("the learner is unreachable: {0}")]
+    Unavailable(String),
+    /// The link was shut down.
+    #[error("the link is closed")]
+    Closed,
+}
+
+/// The actor's side of a connection to the learner. Implementations keep every sent item until
+/// the learner acknowledges it and resend after reconnecting, so an item handed to
+/// [`send`](Self::send) is stored exactly once unless the actor process dies first.
+pub trait ActorLink: Send {
+    /// Registers the actor (once; implementations re-register by themselves after a learner
+    /// restart).
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError>;
+
+    /// Queues one item for the learner. Blocks while the learner applies backpressure (the
+    /// window of unacknowledged items is full); the link numbers items itself.
+    fn send(&mut self, item: IngestItem) -> Result<(), LinkError>;
+
+    /// Blocks until every item sent so far is acknowledged, or `timeout` passes
+    /// ([`LinkError::Unavailable`]).
+    fn flush(&mut self, timeout: Duration) -> Result<(), LinkError>;
+
+    /// The latest weights the link has received, waitable.
+    fn weights(&self) -> &Published<WeightsSnapshot>;
+
+    /// The newest weights version the learner has announced (in acks), for the staleness bound.
+    fn learner_version(&self) -> u64;
+
+    /// Reports greedy test results of weights `weights_version`.
+    fn report_evaluation(
+        &mut self,
+        weights_version: u64,
+        episodes: u32,
+        successes: u32,
+    ) -> Result<(), LinkError>;
+}
