@@ -15,7 +15,6 @@ fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunC
         seed,
         episodes,
         stop_at: None,
-        threads: 1,
         replay_shards: 2,
         agent,
     }

@@ -22,8 +22,6 @@ pub struct RunConfig {
     /// Stop once a test round reaches this success rate.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stop_at: Option<f32>,
-    /// Threads for per-level updates in the embedded trainer (results do not depend on it).
-    pub threads: usize,
     /// Replay shards per level.
     pub replay_shards: usize,
     /// HAC hyperparameters (defaults: the environment's, for this number of levels).
@@ -99,9 +97,6 @@ impl RunConfig {
                     self.agent.levels, self.levels
                 ),
             );
-        }
-        if self.threads == 0 {
-            return invalid("threads", "must be at least 1".into());
         }
         if self.replay_shards == 0 {
             return invalid("replay_shards", "must be at least 1".into());

@@ -18,7 +18,6 @@ struct FileConfig {
     seed: Option<u64>,
     episodes: Option<u64>,
     stop_at: Option<f32>,
-    threads: Option<usize>,
     replay_shards: Option<usize>,
     agent: Option<toml::Table>,
 }
@@ -31,7 +30,6 @@ pub struct Overrides {
     pub seed: Option<u64>,
     pub episodes: Option<u64>,
     pub stop_at: Option<f32>,
-    pub threads: Option<usize>,
     pub replay_shards: Option<usize>,
     /// `KEY=VALUE` agent overrides, VALUE in TOML syntax.
     pub set: Vec<String>,
@@ -110,16 +108,12 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .or(file_config.episodes)
             .unwrap_or(DEFAULT_EPISODES),
         stop_at: flags.stop_at.or(file_config.stop_at),
-        threads: flags.threads.or(file_config.threads).unwrap_or(2),
         replay_shards: flags
             .replay_shards
             .or(file_config.replay_shards)
             .unwrap_or(1),
         agent,
     };
-    if config.threads == 0 {
-        bail!("invalid value for `threads`: must be at least 1");
-    }
     if config.replay_shards == 0 {
         bail!("invalid value for `replay_shards`: must be at least 1");
     }

@@ -14,7 +14,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use hac_agent::{RoundReport, Trainer, TrainerOptions};
+use hac_actor::train_embedded;
+use hac_agent::RoundReport;
 
 use crate::config::{self, RunConfig};
 use crate::plot;
@@ -65,8 +66,6 @@ pub fn run(grid: Grid) -> Result<()> {
                     levels: Some(levels),
                     seed: Some(seed),
                     episodes: grid.episodes,
-                    // Parallelism comes from running jobs side by side.
-                    threads: Some(1),
                     set: grid.set.clone(),
                     ..Default::default()
                 },
@@ -179,24 +178,18 @@ fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
 fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Finished> {
     // Existing runs were refused (unless --overwrite) before any run started.
     let mut dir = RunDir::create(&run_path(out, config), config, true)?;
-    let env = hac_envs::make(&config.env)?;
-    let options = TrainerOptions {
-        seed: config.seed,
-        threads: config.threads,
-        replay_shards: config.replay_shards,
-    };
-    let mut trainer = Trainer::new(env, config.agent.clone(), options)?;
     let started = Instant::now();
     let mut write_error = None;
-    let curve = trainer.run(config.episodes, config.stop_at, interrupt, |report| {
+    let trained = train_embedded(config, interrupt, |report| {
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }
-    });
+    })?;
     if let Some(e) = write_error {
         return Err(e);
     }
-    let summary = dir.finish(trainer.agent(), &curve, started.elapsed().as_secs_f64())?;
+    let curve = trained.curve;
+    let summary = dir.finish(&trained.agent, &curve, started.elapsed().as_secs_f64())?;
     Ok(Finished {
         config: config.clone(),
         curve,

@@ -22,7 +22,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use hac_agent::{Agent, RoundReport, Trainer, TrainerOptions};
+use hac_actor::train_embedded;
+use hac_agent::{Agent, RoundReport};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -136,9 +137,6 @@ struct TrainArgs {
     /// Stop early once a test round reaches this success rate (e.g. 0.9).
     #[arg(long, env = "HAC_STOP_AT")]
     stop_at: Option<f32>,
-    /// Threads for per-level updates; results are identical for any value [default: 2].
-    #[arg(long, env = "HAC_THREADS")]
-    threads: Option<usize>,
     /// Replay shards per level [default: 1].
     #[arg(long, env = "HAC_REPLAY_SHARDS")]
     replay_shards: Option<usize>,
@@ -234,7 +232,6 @@ fn train(args: TrainArgs) -> Result<()> {
             seed: args.seed,
             episodes: args.episodes,
             stop_at: args.stop_at,
-            threads: args.threads,
             replay_shards: args.replay_shards,
             set: args.set,
         },
@@ -247,13 +244,6 @@ fn train(args: TrainArgs) -> Result<()> {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
     let mut dir = run_dir::RunDir::create(&out, &run, args.overwrite)?;
-    let env = hac_envs::make(&run.env)?;
-    let options = TrainerOptions {
-        seed: run.seed,
-        threads: run.threads,
-        replay_shards: run.replay_shards,
-    };
-    let mut trainer = Trainer::new(env, run.agent.clone(), options)?;
     let interrupt = interrupt_on_signals()?;
     println!(
         "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
@@ -268,7 +258,7 @@ fn train(args: TrainArgs) -> Result<()> {
     );
     let started = Instant::now();
     let mut write_error = None;
-    let curve = trainer.run(run.episodes, run.stop_at, &interrupt, |report: &RoundReport| {
+    let trained = train_embedded(&run, &interrupt, |report: &RoundReport| {
         println!(
             "round {:>3} | episodes {:>5} | success {:>5.1}% | env steps/s {:>9.0} | updates/s {:>7.0} | elapsed {:>7.1}s",
             report.round,
@@ -281,17 +271,21 @@ fn train(args: TrainArgs) -> Result<()> {
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }
-    });
+    })?;
     if let Some(e) = write_error {
         return Err(e);
     }
     if interrupt.load(Ordering::Relaxed) {
         println!(
             "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
-            trainer.episodes()
+            trained.actor.episodes
         );
     }
-    let summary = dir.finish(trainer.agent(), &curve, started.elapsed().as_secs_f64())?;
+    let summary = dir.finish(
+        &trained.agent,
+        &trained.curve,
+        started.elapsed().as_secs_f64(),
+    )?;
     println!(
         "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
         summary.episodes,
