@@ -14,8 +14,8 @@ mod run_config;
 use std::path::Path;
 
 use hac_core::{
-    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, GaussianExploration, Hierarchy,
-    Mode, NullSink, Policy, Rng,
+    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, GaussianExploration, Hierarchy, Mode,
+    NullSink, Policy, Rng,
 };
 use hac_nn::{LearnerConfig, LevelLearner, NnError};
 use serde::{Deserialize, Serialize};

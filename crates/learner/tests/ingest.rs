@@ -1,0 +1,321 @@
+//! The learner core without a transport: registration, exactly-once ingest, rejections by
+//! reason, weights publication and the end of a run.
+
+use std::time::Duration;
+
+use hac_agent::RunConfig;
+use hac_core::Batch;
+use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, Stored};
+use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
+
+fn run(episodes: u64) -> RunConfig {
+    let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
+    agent.batch_size = 4;
+    agent.updates_per_episode = 3;
+    agent.hidden_layers = vec![8];
+    RunConfig {
+        env: "pendulum".into(),
+        levels: 2,
+        seed: 1,
+        episodes,
+        stop_at: None,
+        replay_shards: 2,
+        agent,
+    }
+}
+
+fn start(episodes: u64) -> Learner {
+    let config = run(episodes);
+    let options = LearnerOptions::for_run(&config);
+    Learner::start(config, options).unwrap()
+}
+
+fn registration(id: &str, role: ActorRole) -> Registration {
+    Registration {
+        actor_id: id.into(),
+        role,
+        hostname: "localhost".into(),
+        transports: vec!["grpc".into()],
+    }
+}
+
+fn batch(learner: &Learner, level: usize, len: usize) -> IngestItem {
+    let mut batch = Batch::zeros(learner.dims()[level], len);
+    batch.rewards.fill(-1.0);
+    IngestItem::Batch(DecodedBatch {
+        level,
+        weights_version: 1,
+        batch,
+    })
+}
+
+fn episode() -> IngestItem {
+    IngestItem::Episode {
+        env_steps: 10,
+        success: false,
+        weights_version: 1,
+    }
+}
+
+fn msg(id: &str, incarnation: u64, sequence: u64, item: IngestItem) -> IngestMessage {
+    IngestMessage {
+        actor_id: id.into(),
+        incarnation,
+        sequence,
+        item,
+    }
+}
+
+fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
+    learner
+        .status()
+        .rejected
+        .iter()
+        .find(|(r, _)| *r == reason)
+        .map(|&(_, n)| n)
+        .unwrap()
+}
+
+fn stored(learner: &Learner) -> u64 {
+    learner
+        .status()
+        .levels
+        .iter()
+        .map(|l| l.transitions_inserted)
+        .sum()
+}
+
+#[test]
+fn registration_hands_out_fresh_incarnations_and_the_run() {
+    let learner = start(100);
+    let a = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap();
+    let b = learner
+        .register(registration("b", ActorRole::Trainer))
+        .unwrap();
+    let a2 = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap();
+    assert!(a.incarnation >= 1 && b.incarnation > a.incarnation && a2.incarnation > b.incarnation);
+    assert_ne!(
+        a.seed, a2.seed,
+        "a new incarnation gets fresh random streams"
+    );
+    assert_ne!(a.seed, b.seed);
+    let config = RunConfig::from_toml(&a.run_config_toml, "admission").unwrap();
+    assert_eq!(config, run(100));
+    assert_eq!(a.run_config_digest.len(), 64);
+    assert_eq!(a.levels, learner.dims());
+    assert!(
+        learner
+            .register(registration("", ActorRole::Trainer))
+            .is_err()
+    );
+    learner.shutdown();
+}
+
+#[test]
+fn every_message_is_stored_once_and_resends_count_as_duplicates() {
+    let learner = start(100);
+    let inc = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    for seq in 1..=5 {
+        let r = learner.ingest(&msg("a", inc, seq, batch(&learner, 0, 3)));
+        assert_eq!(r.unwrap(), Stored::New);
+    }
+    // A reconnecting actor resends what it has no ack for.
+    for seq in 3..=5 {
+        let r = learner.ingest(&msg("a", inc, seq, batch(&learner, 0, 3)));
+        assert_eq!(r.unwrap(), Stored::Duplicate);
+    }
+    let status = learner.status();
+    assert_eq!(status.messages, 8);
+    assert_eq!(status.duplicates, 3);
+    assert_eq!(status.transitions, 15);
+    assert_eq!(stored(&learner), 15, "received = stored + duplicates");
+    // One actor alone still spreads over both shards.
+    assert_eq!(status.levels[0].shard_lens, [9, 6]);
+    learner.shutdown();
+}
+
+#[test]
+fn bad_messages_are_refused_by_reason_and_store_nothing() {
+    let learner = start(100);
+    let inc = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    learner
+        .ingest(&msg("a", inc, 1, batch(&learner, 0, 2)))
+        .unwrap();
+
+    let mut nan = batch(&learner, 0, 2);
+    if let IngestItem::Batch(b) = &mut nan {
+        b.batch.states[1] = f32::NAN;
+    }
+    let mut short = batch(&learner, 1, 2);
+    if let IngestItem::Batch(b) = &mut short {
+        b.batch.goals.pop();
+    }
+    let cases: Vec<(IngestMessage, RejectReason)> = vec![
+        (msg("a", inc, 2, nan), RejectReason::NotFinite),
+        (msg("a", inc, 2, short), RejectReason::InvalidBatch),
+        (
+            msg("a", inc, 2, {
+                let mut b = batch(&learner, 0, 2);
+                if let IngestItem::Batch(d) = &mut b {
+                    d.level = 2;
+                }
+                b
+            }),
+            RejectReason::LevelOutOfRange,
+        ),
+        (
+            msg("a", inc, 2, batch(&learner, 0, 5000)),
+            RejectReason::Oversized,
+        ),
+        (
+            msg("nobody", 1, 1, batch(&learner, 0, 2)),
+            RejectReason::UnknownActor,
+        ),
+        (
+            msg("a", inc + 7, 2, batch(&learner, 0, 2)),
+            RejectReason::StaleIncarnation,
+        ),
+        (
+            msg("a", inc, 4, batch(&learner, 0, 2)),
+            RejectReason::SequenceGap,
+        ),
+    ];
+    for (m, reason) in cases {
+        let before = rejected(&learner, reason);
+        let e = learner.ingest(&m).unwrap_err();
+        assert_eq!(e.reason(), reason, "{e}");
+        assert_eq!(rejected(&learner, reason), before + 1, "{e}");
+    }
+    assert_eq!(stored(&learner), 2, "only the first, valid batch is stored");
+    // The actor carries on where it was.
+    learner
+        .ingest(&msg("a", inc, 2, batch(&learner, 0, 2)))
+        .unwrap();
+    assert_eq!(stored(&learner), 4);
+
+    // Evaluators send no transitions.
+    let ev = learner
+        .register(registration("eval", ActorRole::Evaluator))
+        .unwrap()
+        .incarnation;
+    let e = learner
+        .ingest(&msg("eval", ev, 1, batch(&learner, 0, 2)))
+        .unwrap_err();
+    assert!(matches!(e, IngestError::WrongRole(_)), "{e}");
+    learner.shutdown();
+}
+
+#[test]
+fn a_re_registered_actor_starts_a_new_sequence_and_its_old_incarnation_is_refused() {
+    let learner = start(100);
+    let old = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    learner
+        .ingest(&msg("a", old, 1, batch(&learner, 0, 2)))
+        .unwrap();
+    let new = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let e = learner
+        .ingest(&msg("a", old, 2, batch(&learner, 0, 2)))
+        .unwrap_err();
+    assert!(matches!(e, IngestError::StaleIncarnation { .. }), "{e}");
+    assert_eq!(
+        learner
+            .ingest(&msg("a", new, 1, batch(&learner, 0, 2)))
+            .unwrap(),
+        Stored::New
+    );
+    assert_eq!(stored(&learner), 4);
+    learner.shutdown();
+}
+
+#[test]
+fn weights_cover_each_episode_once_its_updates_are_done_and_the_budget_ends_the_run() {
+    let learner = start(3);
+    let first = learner.weights().latest().expect("version 1 at start");
+    assert_eq!((first.version, first.episodes), (1, 0));
+    let inc = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let mut seq = 0;
+    for e in 1..=3u64 {
+        for level in 0..2 {
+            seq += 1;
+            learner
+                .ingest(&msg("a", inc, seq, batch(&learner, level, 4)))
+                .unwrap();
+        }
+        seq += 1;
+        learner.ingest(&msg("a", inc, seq, episode())).unwrap();
+        let w = learner
+            .weights()
+            .wait_for(Duration::from_secs(30), |w| w.episodes >= e)
+            .expect("the episode's updates finish");
+        assert_eq!(w.episodes, e);
+        let status = learner.status();
+        for level in &status.levels {
+            assert_eq!(level.updates, 3 * e, "3 updates per episode: {level:?}");
+        }
+    }
+    // No evaluator: the run is over once the budget's updates are done.
+    let last = learner.weights().latest().unwrap();
+    assert!(last.run_finished, "{last:?}");
+    assert!(learner.is_finished());
+    let e = learner
+        .ingest(&msg("a", inc, seq + 1, episode()))
+        .unwrap_err();
+    assert!(matches!(e, IngestError::Finished), "{e}");
+    // Evaluations still land on the curve, at the episodes of the version they used.
+    learner
+        .report_evaluation(&Evaluation {
+            actor_id: "a".into(),
+            incarnation: inc,
+            weights_version: last.version,
+            episodes: 4,
+            successes: 1,
+        })
+        .unwrap();
+    let e = learner
+        .report_evaluation(&Evaluation {
+            actor_id: "a".into(),
+            incarnation: inc,
+            weights_version: 999,
+            episodes: 4,
+            successes: 1,
+        })
+        .unwrap_err();
+    assert!(matches!(e, IngestError::UnknownWeightsVersion(999)), "{e}");
+    let finished = learner.shutdown();
+    assert_eq!(finished.curve.len(), 1);
+    assert_eq!(finished.curve[0].episodes, 3);
+    assert_eq!(finished.curve[0].success_rate, 0.25);
+    assert_eq!(finished.agent.levels().len(), 2);
+}
+
+#[test]
+fn invalid_options_are_refused_by_name() {
+    let config = run(10);
+    let mut options = LearnerOptions::for_run(&config);
+    options.error_buffer_episodes = 0.5;
+    let e = Learner::start(config.clone(), options).unwrap_err();
+    assert!(e.to_string().contains("error_buffer_episodes"), "{e}");
+    let mut options = LearnerOptions::for_run(&config);
+    options.max_batch_transitions = 0;
+    let e = Learner::start(config, options).unwrap_err();
+    assert!(e.to_string().contains("max_batch_transitions"), "{e}");
+}
