@@ -9,6 +9,7 @@
 //! Modules: [`config`] resolves the run configuration from every source, [`plot`] draws SVG
 //! learning curves, [`run_dir`] owns the layout of a run directory.
 
+mod bench;
 mod config;
 mod env_cmd;
 mod experiment;
@@ -59,6 +60,36 @@ enum Command {
     /// Inspect the built-in environments.
     #[command(subcommand)]
     Env(EnvCommand),
+    /// Measure the system's throughput.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchCommand {
+    /// Transitions/s, batches/s and ack latency p50/p99 of learner ingest through a transport,
+    /// with pre-made pendulum-sized batches from concurrent actors; checks that the learner
+    /// stored exactly what it acknowledged.
+    Ingest {
+        /// The path batches take.
+        #[arg(long, value_enum, default_value_t = bench::Transport::InProcess)]
+        transport: bench::Transport,
+        /// Concurrent senders, each registered as its own actor.
+        #[arg(long, default_value_t = 4)]
+        actors: usize,
+        /// How long to send.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+        /// Transitions per batch.
+        #[arg(long, default_value_t = 512)]
+        batch: usize,
+        /// Unacknowledged batches each sender keeps in flight (streaming transports).
+        #[arg(long, default_value_t = 32)]
+        window: usize,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -199,6 +230,21 @@ fn main() {
                 overwrite: args.overwrite,
                 interrupt,
             })
+        }),
+        Command::Bench(BenchCommand::Ingest {
+            transport,
+            actors,
+            seconds,
+            batch,
+            window,
+            json,
+        }) => bench::run_ingest(&bench::IngestBench {
+            transport,
+            actors,
+            seconds,
+            batch,
+            window,
+            json,
         }),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),

@@ -1,0 +1,232 @@
+//! `hac bench ingest`: how fast the learner takes transitions in, through a chosen transport.
+//!
+//! A learner is started in this process for a pendulum-sized 2-level run (its trainers stay idle:
+//! the bench sends batches but no episode ends, so no updates are owed), then `--actors`
+//! concurrent senders push pre-made level-0 batches for `--seconds`. Reported: transitions/s and
+//! batches/s stored by the learner (from its own counters, so nothing is counted that was not
+//! stored), ack latency p50/p99 (send to cumulative ack), and a check that the learner stored
+//! exactly what was acknowledged (no loss, no duplicates).
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use hac_agent::RunConfig;
+use hac_core::Batch;
+use hac_learner::{Learner, LearnerOptions};
+use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
+use serde::Serialize;
+
+/// Which path the batches take.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Transport {
+    /// Direct calls into the learner (the embedded run's path): the learner's own ceiling.
+    InProcess,
+}
+
+/// `hac bench ingest` settings.
+#[derive(Debug, Clone)]
+pub struct IngestBench {
+    pub transport: Transport,
+    pub actors: usize,
+    pub seconds: f64,
+    pub batch: usize,
+    pub window: usize,
+    pub json: bool,
+}
+
+/// One bench result, as printed.
+#[derive(Debug, Clone, Serialize)]
+pub struct IngestReport {
+    pub transport: Transport,
+    pub actors: usize,
+    pub batch_transitions: usize,
+    pub window: usize,
+    pub seconds: f64,
+    pub transitions_per_s: f64,
+    pub batches_per_s: f64,
+    pub ack_latency_p50_us: f64,
+    pub ack_latency_p99_us: f64,
+    pub transitions_stored: u64,
+    pub transitions_acked: u64,
+    pub duplicates: u64,
+    pub floats_per_transition: usize,
+}
+
+/// The run the bench learner serves: pendulum, 2 levels, a replay large enough that the bench
+/// measures inserts rather than a tiny ring's cache behaviour.
+pub fn bench_run() -> Result<RunConfig> {
+    let env = hac_envs::make("pendulum")?;
+    let mut agent = env.default_config(2);
+    agent.replay_capacity_max = 1 << 20;
+    Ok(RunConfig {
+        env: "pendulum".into(),
+        levels: 2,
+        seed: 0,
+        episodes: u64::MAX,
+        stop_at: None,
+        replay_shards: 4,
+        agent,
+    })
+}
+
+/// A full level-0 batch of `len` plausible pendulum transitions.
+pub fn level0_batch(learner: &Learner, len: usize) -> Batch {
+    let dims = learner.dims()[0];
+    let mut batch = Batch::zeros(dims, len);
+    for (i, x) in batch.states.iter_mut().enumerate() {
+        *x = (i % 17) as f32 * 0.1 - 0.8;
+    }
+    batch.next_states.copy_from_slice(&batch.states);
+    batch.actions.fill(0.5);
+    batch.goals.fill(0.1);
+    batch.rewards.fill(-1.0);
+    batch
+}
+
+/// Latency percentiles in microseconds from unsorted samples.
+pub fn percentiles(samples: &mut [u32]) -> (f64, f64) {
+    if samples.is_empty() {
+        return (0.0, 0.0);
+    }
+    samples.sort_unstable();
+    let at = |q: f64| samples[((samples.len() - 1) as f64 * q).round() as usize] as f64;
+    (at(0.50), at(0.99))
+}
+
+pub fn run_ingest(bench: &IngestBench) -> Result<()> {
+    if bench.actors == 0 || bench.batch == 0 || bench.window == 0 {
+        bail!("--actors, --batch and --window must be at least 1");
+    }
+    if !(bench.seconds.is_finite() && bench.seconds > 0.0) {
+        bail!("--seconds must be a positive number");
+    }
+    let run = bench_run()?;
+    let mut options = LearnerOptions::for_run(&run);
+    options.max_batch_transitions = options.max_batch_transitions.max(bench.batch);
+    let learner = Arc::new(Learner::start(run, options).context("starting the bench learner")?);
+    if !bench.json {
+        eprintln!(
+            "bench ingest: {:?}, {} actors, batches of {}, window {}, {} s",
+            bench.transport, bench.actors, bench.batch, bench.window, bench.seconds
+        );
+    }
+    let report = match bench.transport {
+        Transport::InProcess => in_process(bench, &learner)?,
+    };
+    learner.finish("bench over");
+    if let Some(learner) = Arc::into_inner(learner) {
+        learner.shutdown();
+    }
+    if report.transitions_stored != report.transitions_acked || report.duplicates != 0 {
+        bail!(
+            "the learner stored {} transitions but {} were acknowledged ({} duplicates)",
+            report.transitions_stored,
+            report.transitions_acked,
+            report.duplicates
+        );
+    }
+    print_report(&report, bench.json)
+}
+
+fn print_report(r: &IngestReport, json: bool) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(r)?);
+        return Ok(());
+    }
+    println!(
+        "| transport | actors | batch | transitions/s | batches/s | ack p50 | ack p99 | stored = acked |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!(
+        "| {:?} | {} | {} | {:.0} | {:.0} | {:.0} us | {:.0} us | {} = {} |",
+        r.transport,
+        r.actors,
+        r.batch_transitions,
+        r.transitions_per_s,
+        r.batches_per_s,
+        r.ack_latency_p50_us,
+        r.ack_latency_p99_us,
+        r.transitions_stored,
+        r.transitions_acked
+    );
+    Ok(())
+}
+
+/// Senders on their own threads calling the learner directly; a call's return is its ack.
+fn in_process(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestReport> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let batch = level0_batch(learner, bench.batch);
+    let floats = batch.states.len() * 2 + batch.actions.len() + batch.goals.len() + 2 * batch.len;
+    let mut senders = Vec::new();
+    let start = Arc::new(std::sync::Barrier::new(bench.actors + 1));
+    for a in 0..bench.actors {
+        let start = start.clone();
+        let learner = learner.clone();
+        let stop = stop.clone();
+        let batch = batch.clone();
+        let admission = learner
+            .register(Registration {
+                actor_id: format!("bench-{a}"),
+                role: ActorRole::Trainer,
+                hostname: String::new(),
+                transports: vec!["in-process".into()],
+            })
+            .context("registering a bench actor")?;
+        senders.push(std::thread::spawn(move || -> Result<(u64, Vec<u32>)> {
+            let mut msg = IngestMessage {
+                actor_id: format!("bench-{a}"),
+                incarnation: admission.incarnation,
+                sequence: 0,
+                item: IngestItem::Batch(DecodedBatch {
+                    level: 0,
+                    weights_version: 1,
+                    batch,
+                }),
+            };
+            let (mut acked, mut latencies) = (0u64, Vec::with_capacity(1 << 16));
+            start.wait();
+            while !stop.load(Ordering::Relaxed) {
+                msg.sequence += 1;
+                let t0 = Instant::now();
+                learner.ingest(&msg)?;
+                latencies.push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
+                acked += 1;
+            }
+            Ok((acked, latencies))
+        }));
+    }
+    start.wait();
+    let started = Instant::now();
+    std::thread::sleep(Duration::from_secs_f64(bench.seconds));
+    stop.store(true, Ordering::Relaxed);
+    let mut acked_batches = 0;
+    let mut latencies = Vec::new();
+    for s in senders {
+        let (n, l) = s.join().expect("a bench sender panicked")?;
+        acked_batches += n;
+        latencies.extend(l);
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let after = learner.status();
+    let (p50, p99) = percentiles(&mut latencies);
+    // The learner is fresh: its totals are the bench's.
+    let stored = after.transitions;
+    Ok(IngestReport {
+        transport: bench.transport,
+        actors: bench.actors,
+        batch_transitions: bench.batch,
+        window: 1,
+        seconds: elapsed,
+        transitions_per_s: stored as f64 / elapsed,
+        batches_per_s: after.batches as f64 / elapsed,
+        ack_latency_p50_us: p50,
+        ack_latency_p99_us: p99,
+        transitions_stored: stored,
+        transitions_acked: acked_batches * bench.batch as u64,
+        duplicates: after.duplicates,
+        floats_per_transition: floats / bench.batch,
+    })
+}
