@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use hac_core::AgentConfig;
+use hac_tabular::TabularConfig;
 use serde::{Deserialize, Serialize};
 
 /// Everything that defines a training run.
@@ -26,6 +27,10 @@ pub struct RunConfig {
     pub replay_shards: usize,
     /// HAC hyperparameters (defaults: the environment's, for this number of levels).
     pub agent: AgentConfig,
+    /// The tabular learner's own settings; present exactly for the grid worlds. Set under
+    /// `[tabular]` in the file, with `--set tabular.KEY=VALUE`, or `HAC_TABULAR_<KEY>`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tabular: Option<TabularConfig>,
 }
 
 /// Why a run configuration could not be read.
@@ -106,10 +111,26 @@ impl RunConfig {
                 return invalid("stop_at", format!("{s} (must be a success rate in [0, 1])"));
             }
         }
-        let env = hac_envs::make(&self.env).map_err(|source| RunConfigError::Env {
+        let env = self.make_env().map_err(|source| RunConfigError::Env {
             origin: origin.to_string(),
             source,
         })?;
+        if self.is_tabular() != self.tabular.is_some() {
+            return invalid(
+                "tabular",
+                format!(
+                    "the `[tabular]` section is required for the grid worlds ({}) and refused for \
+                     every other environment",
+                    hac_tabular::names().join(", ")
+                ),
+            );
+        }
+        if let Some(tabular) = &self.tabular {
+            tabular.validate().map_err(|source| RunConfigError::Agent {
+                origin: origin.to_string(),
+                source,
+            })?;
+        }
         let spec = env.spec();
         self.agent
             .validate(spec.action_dim(), spec.subgoal_dim())
@@ -119,8 +140,14 @@ impl RunConfig {
             })
     }
 
-    /// A fresh instance of the run's environment.
+    /// Whether the environment is a grid world, learned by the tabular learner rather than the
+    /// neural agent.
+    pub fn is_tabular(&self) -> bool {
+        hac_tabular::names().contains(&self.env.as_str())
+    }
+
+    /// A fresh instance of the run's environment (continuous tasks and grid worlds alike).
     pub fn make_env(&self) -> Result<Box<dyn hac_core::Env>, hac_envs::UnknownEnv> {
-        hac_envs::make(&self.env)
+        hac_envs::make(&self.env).or_else(|e| hac_tabular::make(&self.env).map_err(|_| e))
     }
 }

@@ -378,6 +378,16 @@ impl Learner {
     /// `run.seed`), starts one trainer thread per level and publishes weights version 1.
     pub fn start(run: RunConfig, options: LearnerOptions) -> Result<Self, StartError> {
         run.validate("the run config")?;
+        if run.is_tabular() {
+            return Err(StartError::Option {
+                key: "env",
+                message: format!(
+                    "`{}` is a grid world for the tabular learner (`hac train`), not the \
+                     neural learner service",
+                    run.env
+                ),
+            });
+        }
         let option = |key, message: &str| {
             Err(StartError::Option {
                 key,

@@ -21,6 +21,7 @@ fn run(episodes: u64) -> RunConfig {
         stop_at: None,
         replay_shards: 2,
         agent,
+        tabular: None,
     }
 }
 

@@ -236,13 +236,36 @@ struct Shared {
     levels: Vec<ActionSpace>,
 }
 
+/// One level's learning statistics, for learning curves.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LevelStats {
+    /// Q-learning updates applied to the level so far.
+    pub updates: u64,
+    /// Mean squared temporal-difference error `(y - Q)^2` (before the update) over the current
+    /// window, the tabular counterpart of the critic's loss; 0 for an empty window.
+    pub mean_sq_td_error: f32,
+    /// Mean value `Q` (before the update) of the entries updated in the current window.
+    pub mean_q: f32,
+}
+
+/// Sums behind [`LevelStats`]; the window is what [`TabularAgent::start_stats_window`] opens.
+#[derive(Debug, Clone, Copy, Default)]
+struct LevelCounters {
+    updates: u64,
+    window: u64,
+    sq_td_error: f64,
+    q: f64,
+}
+
 /// Tabular HAC ("hierarchical Q-learning"): the greedy [`Policy`] of every level and, as a
 /// [`TransitionSink`], the Q-learning update of every transition it receives.
 #[derive(Debug)]
 pub struct TabularAgent {
     shared: Arc<Shared>,
     /// Per level, `Q[((s * cells) + g) * slots + a]`.
-    tables: Vec<Vec<f32>>,
+    pub(crate) tables: Vec<Vec<f32>>,
+    /// The value every entry starts from ([`InitialQ`]).
+    pub(crate) initial_value: f32,
     horizon: f32,
     gamma: f32,
     learning_rate: f32,
@@ -250,6 +273,7 @@ pub struct TabularAgent {
     rng: Rng,
     updates: u64,
     skipped: u64,
+    counters: Vec<LevelCounters>,
 }
 
 impl TabularAgent {
@@ -302,18 +326,21 @@ impl TabularAgent {
             .iter()
             .map(|s| vec![init; per_slot * s.slots()])
             .collect();
+        let counters = vec![LevelCounters::default(); levels.len()];
         Ok(Self {
             shared: Arc::new(Shared {
                 grid: grid.clone(),
                 levels,
             }),
             tables,
+            initial_value: init,
             horizon: config.horizon as f32,
             gamma: config.gamma,
             learning_rate: tabular.learning_rate,
             rng,
             updates: 0,
             skipped: 0,
+            counters,
         })
     }
 
@@ -352,6 +379,34 @@ impl TabularAgent {
     /// Transitions skipped because the tables have no place for them.
     pub fn skipped(&self) -> u64 {
         self.skipped
+    }
+
+    /// Level `level`'s update count, and its TD error and values over the current window.
+    pub fn level_stats(&self, level: usize) -> LevelStats {
+        let c = &self.counters[level];
+        let n = c.window.max(1) as f64;
+        LevelStats {
+            updates: c.updates,
+            mean_sq_td_error: (c.sq_td_error / n) as f32,
+            mean_q: (c.q / n) as f32,
+        }
+    }
+
+    /// Starts a new window for [`Self::level_stats`]' averages at every level.
+    pub fn start_stats_window(&mut self) {
+        for c in &mut self.counters {
+            (c.window, c.sq_td_error, c.q) = (0, 0.0, 0.0);
+        }
+    }
+
+    /// The (clipped) subgoal radius and number of table slots of level `level`.
+    pub(crate) fn layout(&self, level: usize) -> (Option<usize>, usize) {
+        let space = &self.shared.levels[level];
+        (self.subgoal_radius(level), space.slots())
+    }
+
+    pub(crate) fn grid(&self) -> &Grid {
+        &self.shared.grid
     }
 
     /// The value of taking `action` towards `goal` from `state` at level `level`, if the table has
@@ -395,6 +450,11 @@ impl TabularAgent {
         let target = (t.reward + self.gamma * bootstrap).clamp(-self.horizon, 0.0);
         let i = self.row(level, s, g) + a;
         let q = &mut self.tables[level][i];
+        let c = &mut self.counters[level];
+        c.updates += 1;
+        c.window += 1;
+        c.sq_td_error += f64::from((target - *q) * (target - *q));
+        c.q += f64::from(*q);
         *q += self.learning_rate * (target - *q);
         self.updates += 1;
         true
@@ -644,6 +704,17 @@ mod tests {
         assert!(a.update(0, &transition(&s, &[1.0], -50.0, &next, &goal, true)));
         assert_eq!(a.value(0, &s, &goal, &[1.0]), Some(-4.0));
         assert_eq!(a.updates(), 3);
+        // Errors before each update: 1, 0.5 and 8 (the clipped penalty, from 0).
+        let stats = a.level_stats(0);
+        assert_eq!(stats.updates, 3);
+        assert!((stats.mean_sq_td_error - (1.0 + 0.25 + 64.0) / 3.0).abs() < 1e-5);
+        assert!((stats.mean_q - (0.0 - 0.5 + 0.0) / 3.0).abs() < 1e-6);
+        a.start_stats_window();
+        let stats = a.level_stats(0);
+        assert_eq!(
+            (stats.updates, stats.mean_sq_td_error, stats.mean_q),
+            (3, 0.0, 0.0)
+        );
     }
 
     #[test]

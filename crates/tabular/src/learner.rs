@@ -116,16 +116,29 @@ impl TabularHac {
 
     /// One training episode (behaviour policy, subgoal testing), then its updates.
     pub fn train_episode(&mut self, env: &mut FourRooms, rng: &mut Rng) -> EpisodeOutcome {
-        let outcome = self.hierarchy.run_episode(
+        let outcome = self.collect_episode(env, rng);
+        self.learn();
+        outcome
+    }
+
+    /// The rollout half of [`Self::train_episode`]: one training episode whose transitions are
+    /// kept for [`Self::learn`].
+    pub fn collect_episode(&mut self, env: &mut FourRooms, rng: &mut Rng) -> EpisodeOutcome {
+        self.hierarchy.run_episode(
             env,
             &mut self.agent,
             &mut self.exploration,
             Mode::Train,
             rng,
             &mut self.buffer,
-        );
+        )
+    }
+
+    /// The update half of [`Self::train_episode`]: one Q-learning update per collected
+    /// transition, newest first. [`TabularAgent::level_stats`] then describes these updates.
+    pub fn learn(&mut self) {
+        self.agent.start_stats_window();
         self.buffer.drain_newest_first(&mut self.agent);
-        outcome
     }
 
     /// One greedy test episode; learns nothing.

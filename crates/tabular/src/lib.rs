@@ -8,18 +8,23 @@
 //!   Q-learning update) and [`TabularExploration`] (HAC's behaviour policy for discrete choices).
 //! - [`learner`]: [`TabularHac`], which runs episodes through the unchanged core rollout, and
 //!   [`success_curve`], the mean learning curve of several trials.
+//! - [`checkpoint`]: one level's Q table as a sparse safetensors file.
 //! - This file: the registry ([`names`], [`make`], [`four_rooms`]).
 
 #![forbid(unsafe_code)]
 
 pub mod agent;
+pub mod checkpoint;
 pub mod env;
 pub mod grid;
 pub mod learner;
 
 use hac_core::Env;
 
-pub use agent::{InitialQ, TabularAgent, TabularConfig, TabularError, TabularExploration};
+pub use agent::{
+    InitialQ, LevelStats, TabularAgent, TabularConfig, TabularError, TabularExploration,
+};
+pub use checkpoint::TableFileError;
 pub use env::FourRooms;
 pub use grid::{Cell, Grid, GridError};
 pub use learner::{CurveSpec, SuccessCurve, TabularHac, success_curve, success_curve_with};

@@ -69,6 +69,7 @@ pub fn bench_run() -> Result<RunConfig> {
         stop_at: None,
         replay_shards: 4,
         agent,
+        tabular: None,
     })
 }
 

@@ -5,9 +5,12 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use hac_core::AgentConfig;
+use hac_tabular::TabularConfig;
 use serde::Deserialize;
 
 pub use hac_agent::RunConfig;
+
+use crate::registry;
 
 /// The top level of a config file: every key optional.
 #[derive(Debug, Default, Deserialize)]
@@ -20,6 +23,7 @@ struct FileConfig {
     stop_at: Option<f32>,
     replay_shards: Option<usize>,
     agent: Option<toml::Table>,
+    tabular: Option<toml::Table>,
 }
 
 /// Values given on the command line or through `HAC_*` variables (clap reads both).
@@ -31,7 +35,8 @@ pub struct Overrides {
     pub episodes: Option<u64>,
     pub stop_at: Option<f32>,
     pub replay_shards: Option<usize>,
-    /// `KEY=VALUE` agent overrides, VALUE in TOML syntax.
+    /// `KEY=VALUE` agent overrides (`tabular.KEY=VALUE` for the tabular learner), VALUE in TOML
+    /// syntax.
     pub set: Vec<String>,
 }
 
@@ -54,7 +59,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         .env
         .or(file_config.env)
         .unwrap_or_else(|| DEFAULT_ENV.to_string());
-    let env = hac_envs::make(&env_name)?;
+    let env = registry::make(&env_name)?;
     let levels = flags
         .levels
         .or(file_config.levels)
@@ -72,21 +77,21 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             agent.insert(key, value);
         }
     }
-    let mut sets: Vec<(String, String)> = std::env::vars()
-        .filter_map(|(k, v)| {
-            k.strip_prefix("HAC_AGENT_")
-                .map(|key| (key.to_lowercase(), v))
-        })
-        .collect();
-    sets.sort();
+    let mut sets = variables("HAC_AGENT_");
+    let mut tabular_sets = variables("HAC_TABULAR_");
+    let mut tabular_flags = false;
     for kv in &flags.set {
         let (key, value) = kv
             .split_once('=')
             .with_context(|| format!("--set expects KEY=VALUE, got `{kv}`"))?;
-        sets.push((
-            key.trim().trim_start_matches("agent.").to_string(),
-            value.trim().to_string(),
-        ));
+        let (key, value) = (key.trim(), value.trim().to_string());
+        match key.strip_prefix("tabular.") {
+            Some(key) => {
+                tabular_sets.push((key.to_string(), value));
+                tabular_flags = true;
+            }
+            None => sets.push((key.trim_start_matches("agent.").to_string(), value)),
+        }
     }
     for (key, value) in sets {
         agent.insert(key.clone(), parse_value(&key, &value)?);
@@ -98,6 +103,29 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
     }
     let spec = env.spec();
     agent.validate(spec.action_dim(), spec.subgoal_dim())?;
+
+    // The tabular learner's settings: its defaults, the file's [tabular] table, then
+    // HAC_TABULAR_* variables and --set tabular.KEY flags.
+    let tabular = if registry::is_tabular(&env_name) {
+        let mut table =
+            toml::Table::try_from(TabularConfig::default()).context("encoding default config")?;
+        table.extend(file_config.tabular.unwrap_or_default());
+        for (key, value) in tabular_sets {
+            let value = parse_value(&format!("tabular.{key}"), &value)?;
+            table.insert(key, value);
+        }
+        let tabular: TabularConfig = table.try_into().context("in the tabular configuration")?;
+        tabular.validate().context("in the tabular configuration")?;
+        Some(tabular)
+    } else {
+        if file_config.tabular.is_some() || tabular_flags {
+            bail!(
+                "`tabular` settings apply to the grid worlds only ({}), not to `{env_name}`",
+                hac_tabular::names().join(", ")
+            );
+        }
+        None
+    };
 
     let config = RunConfig {
         env: env_name,
@@ -113,6 +141,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .or(file_config.replay_shards)
             .unwrap_or(1),
         agent,
+        tabular,
     };
     if config.replay_shards == 0 {
         bail!("invalid value for `replay_shards`: must be at least 1");
@@ -123,6 +152,15 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         }
     }
     Ok(config)
+}
+
+/// `(key, value)` of every environment variable `<prefix><KEY>`, key lowercased, sorted.
+fn variables(prefix: &str) -> Vec<(String, String)> {
+    let mut vars: Vec<(String, String)> = std::env::vars()
+        .filter_map(|(k, v)| k.strip_prefix(prefix).map(|key| (key.to_lowercase(), v)))
+        .collect();
+    vars.sort();
+    vars
 }
 
 /// Parses one override's value as TOML (`10`, `0.5`, `[64, 64]`, `"text"`).
@@ -235,6 +273,61 @@ mod tests {
             .unwrap_err()
         );
         assert!(e.contains("nope") && e.contains("pendulum"), "{e}");
+    }
+
+    #[test]
+    fn grid_worlds_get_tabular_settings_and_only_they_do() {
+        let f = write("env = \"four-rooms\"\nlevels = 3\n[tabular]\nlearning_rate = 0.5\n");
+        let c = resolve(
+            Some(&f.0),
+            Overrides {
+                set: vec!["tabular.initial_q=\"optimistic\"".into()],
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let t = c.tabular.as_ref().unwrap();
+        assert_eq!(t.learning_rate, 0.5);
+        assert_eq!(t.initial_q, hac_tabular::InitialQ::Optimistic);
+        assert_eq!(c.agent.horizon, 4, "four-rooms' own H for 3 levels");
+        let text = toml::to_string(&c).unwrap();
+        assert!(text.contains("[tabular]"), "{text}");
+        assert_eq!(toml::from_str::<RunConfig>(&text).unwrap(), c);
+
+        let neural = resolve(None, Overrides::default()).unwrap();
+        assert_eq!(neural.tabular, None);
+        assert!(!toml::to_string(&neural).unwrap().contains("tabular"));
+        for (file, set) in [
+            ("[tabular]\nlearning_rate = 0.5\n", vec![]),
+            ("", vec!["tabular.learning_rate=0.5".to_string()]),
+        ] {
+            let f = write(file);
+            let e = format!(
+                "{:#}",
+                resolve(
+                    Some(&f.0),
+                    Overrides {
+                        set,
+                        ..Default::default()
+                    }
+                )
+                .unwrap_err()
+            );
+            assert!(e.contains("tabular") && e.contains("pendulum"), "{e}");
+        }
+        let e = format!(
+            "{:#}",
+            resolve(
+                None,
+                Overrides {
+                    env: Some("four-rooms".into()),
+                    set: vec!["tabular.learning_rate=2".into()],
+                    ..Default::default()
+                }
+            )
+            .unwrap_err()
+        );
+        assert!(e.contains("learning_rate"), "{e}");
     }
 
     #[test]

@@ -6,10 +6,12 @@ use anyhow::{Context, Result, bail};
 use hac_core::{Env, Rng};
 use serde_json::json;
 
+use crate::registry;
+
 /// `hac env list`: one line per environment.
 pub fn list() -> Result<()> {
-    for name in hac_envs::names() {
-        let env = hac_envs::make(name)?;
+    for name in registry::names() {
+        let env = registry::make(name)?;
         println!("{name:<14} {}", env.spec().description);
     }
     Ok(())
@@ -17,14 +19,16 @@ pub fn list() -> Result<()> {
 
 /// `hac env describe NAME`: spaces, bounds, thresholds and defaults per level count.
 pub fn describe(name: &str, json_out: bool) -> Result<()> {
-    let env = hac_envs::make(name)?;
+    let env = registry::make(name)?;
     let spec = env.spec();
     let defaults: Vec<_> = (1..=3).map(|k| env.default_config(k)).collect();
+    let tabular = registry::is_tabular(name).then(hac_tabular::TabularConfig::default);
     if json_out {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&json!({"spec": spec, "defaults": defaults}))?
-        );
+        let mut description = json!({"spec": spec, "defaults": defaults});
+        if let Some(t) = &tabular {
+            description["tabular"] = serde_json::to_value(t)?;
+        }
+        println!("{}", serde_json::to_string_pretty(&description)?);
         return Ok(());
     }
     let fmt = |v: &[f32]| {
@@ -76,6 +80,15 @@ pub fn describe(name: &str, json_out: bool) -> Result<()> {
             c.hidden_layers
         );
     }
+    if let Some(t) = &tabular {
+        println!(
+            "  learner: tabular Q-learning (the network keys above are unused); [tabular] defaults: \
+             learning_rate {}, initial_q {}, max_table_entries {}",
+            t.learning_rate,
+            serde_json::to_string(&t.initial_q)?,
+            t.max_table_entries
+        );
+    }
     println!(
         "  (all keys: hac train --print-config --env {} --levels K)",
         spec.name
@@ -94,7 +107,7 @@ fn noise(n: &hac_core::Noise) -> String {
 /// line, printing one JSON object per state. Actions are clipped to the action bounds, as the
 /// agent's are. The first bad line ends the command with an error naming the line.
 pub fn rollout(name: &str, seed: u64, state: Option<&str>) -> Result<()> {
-    let mut env = hac_envs::make(name)?;
+    let mut env = registry::make(name)?;
     let mut rng = Rng::seed_from(seed);
     env.reset(&mut rng);
     if let Some(text) = state {

@@ -20,6 +20,7 @@ use hac_agent::RoundReport;
 use crate::config::{self, RunConfig};
 use crate::plot;
 use crate::run_dir::{RunDir, Summary};
+use crate::tabular_cmd;
 
 /// What to run.
 #[derive(Debug)]
@@ -178,6 +179,14 @@ fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
 fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Finished> {
     // Existing runs were refused (unless --overwrite) before any run started.
     let mut dir = RunDir::create(&run_path(out, config), config, true)?;
+    if tabular_cmd::handles(&config.env) {
+        let (trained, summary) = tabular_cmd::train_into(config, &mut dir, interrupt, |_| {})?;
+        return Ok(Finished {
+            config: config.clone(),
+            curve: trained.curve,
+            summary,
+        });
+    }
     let started = Instant::now();
     let mut write_error = None;
     let trained = train_embedded(config, interrupt, |report| {

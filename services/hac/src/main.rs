@@ -4,17 +4,24 @@
 //!   progress line per test round; writes a run directory (see [`run_dir`]).
 //! - `hac eval`: greedy test episodes of a trained run.
 //! - `hac experiment`: a grid of level counts x seeds with mean +- std plots and a summary.
+//! - `hac render`: one greedy episode of a trained run as an animated GIF or PNG frames.
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
 //!
-//! Modules: [`config`] resolves the run configuration from every source, [`plot`] draws SVG
-//! learning curves, [`run_dir`] owns the layout of a run directory.
+//! Modules: [`config`] resolves the run configuration from every source, [`registry`] names
+//! every environment, [`plot`] draws SVG learning curves, [`run_dir`] owns the layout of a run
+//! directory, [`schedule`] is the reference training schedule for any learner, [`tabular_cmd`]
+//! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
 mod bench;
 mod config;
 mod env_cmd;
 mod experiment;
 mod plot;
+mod registry;
+mod render;
 mod run_dir;
+mod schedule;
+mod tabular_cmd;
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -57,6 +64,9 @@ enum Command {
     /// Run a grid of level counts x seeds (several at a time) and summarise it: a plot per
     /// environment with mean +- 1 std per level count, and a markdown table.
     Experiment(ExperimentArgs),
+    /// Draw one greedy test episode of a trained run: the state, the end goal and every level's
+    /// current subgoal, as an animated GIF or a directory of numbered PNG frames.
+    Render(render::RenderArgs),
     /// Inspect the built-in environments.
     #[command(subcommand)]
     Env(EnvCommand),
@@ -146,7 +156,8 @@ enum EnvCommand {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Start from this physical state instead (JSON array): pendulum `[q, qdot]`,
-        /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`.
+        /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`, four-rooms
+        /// `[row, col]` (a free cell).
         #[arg(long)]
         state: Option<String>,
     },
@@ -154,7 +165,8 @@ enum EnvCommand {
 
 #[derive(Debug, Args)]
 struct TrainArgs {
-    /// Built-in environment: pendulum, ur5-reacher, mountain-car [default: pendulum].
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car, or a grid world (four-rooms,
+    /// four-rooms-25; learned by tabular HAC) [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
     env: Option<String>,
     /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].
@@ -246,6 +258,7 @@ fn main() {
             window,
             json,
         }),
+        Command::Render(args) => render::run(&args),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
@@ -292,6 +305,9 @@ fn train(args: TrainArgs) -> Result<()> {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
     let mut dir = run_dir::RunDir::create(&out, &run, args.overwrite)?;
+    if tabular_cmd::handles(&run.env) {
+        return tabular_cmd::train(&run, dir, &out);
+    }
     let interrupt = interrupt_on_signals()?;
     println!(
         "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
@@ -307,15 +323,7 @@ fn train(args: TrainArgs) -> Result<()> {
     let started = Instant::now();
     let mut write_error = None;
     let trained = train_embedded(&run, &interrupt, |report: &RoundReport| {
-        println!(
-            "round {:>3} | episodes {:>5} | success {:>5.1}% | env steps/s {:>9.0} | updates/s {:>7.0} | elapsed {:>7.1}s",
-            report.round,
-            report.episodes,
-            100.0 * report.success_rate,
-            report.env_steps_per_s,
-            report.updates_per_s,
-            report.elapsed_s
-        );
+        println!("{}", schedule::progress_line(report));
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }
@@ -363,27 +371,32 @@ fn interrupt_on_signals() -> Result<Arc<AtomicBool>> {
 
 fn eval(args: EvalArgs) -> Result<()> {
     let run = config::load_run(&args.run)?;
-    let mut env = hac_envs::make(&run.env)?;
-    let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
-        .context("loading the run's weights")?;
     let episodes = args.episodes.unwrap_or(run.agent.test_episodes);
     let mut index = 0usize;
-    let success = hac_agent::evaluate(
-        env.as_mut(),
-        &mut agent,
-        &run.agent,
-        episodes,
-        args.seed,
-        |outcome, state| {
-            if args.per_episode {
-                println!(
-                    "{}",
-                    serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "final_state": state})
-                );
-            }
-            index += 1;
-        },
-    );
+    let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32]| {
+        if args.per_episode {
+            println!(
+                "{}",
+                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "final_state": state})
+            );
+        }
+        index += 1;
+    };
+    let success = if tabular_cmd::handles(&run.env) {
+        tabular_cmd::evaluate(&args.run, &run, episodes, args.seed, on_episode)?
+    } else {
+        let mut env = hac_envs::make(&run.env)?;
+        let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+            .context("loading the run's weights")?;
+        hac_agent::evaluate(
+            env.as_mut(),
+            &mut agent,
+            &run.agent,
+            episodes,
+            args.seed,
+            on_episode,
+        )
+    };
     if args.json {
         println!(
             "{}",

@@ -3,7 +3,8 @@
 //! - `config.toml`: the resolved configuration (feed it back with `--config` to repeat the run);
 //! - `curve.csv`: one row per test round (success rate, speeds, per-level losses), appended live;
 //! - `curve.svg`: the learning curve, redrawn after every round;
-//! - `weights/level<i>.safetensors`: each level's actor and critic, at the end of training;
+//! - `weights/level<i>.safetensors`: each level's actor and critic (neural agent) or Q table
+//!   (tabular agent, see `hac_tabular::checkpoint`), at the end of training;
 //! - `summary.json`: headline figures (final and best success, episodes to 50% and 90%, time).
 
 use std::fs::File;
@@ -19,6 +20,17 @@ use crate::plot;
 
 pub fn weights_dir(run: &Path) -> PathBuf {
     run.join("weights")
+}
+
+/// A trained agent that can write its `weights/` directory.
+pub trait Weights {
+    fn save(&self, dir: &Path) -> Result<()>;
+}
+
+impl Weights for Agent {
+    fn save(&self, dir: &Path) -> Result<()> {
+        Ok(Agent::save(self, dir)?)
+    }
 }
 
 /// Headline figures of a finished run.
@@ -98,7 +110,7 @@ impl RunDir {
     /// Saves the weights and the summary.
     pub fn finish(
         &self,
-        agent: &Agent,
+        agent: &dyn Weights,
         curve: &[RoundReport],
         wall_time_s: f64,
     ) -> Result<Summary> {
@@ -132,7 +144,7 @@ impl RunDir {
 }
 
 /// Writes atomically (temp file, then rename) so a reader never sees half a file.
-fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))

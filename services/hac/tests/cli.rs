@@ -203,7 +203,9 @@ fn env_list_and_describe() {
     assert!(o.status.success());
     let list = text(&o.stdout);
     assert!(
-        list.contains("pendulum") && list.contains("mountain-car"),
+        ["pendulum", "mountain-car", "four-rooms", "four-rooms-25"]
+            .iter()
+            .all(|name| list.contains(name)),
         "{list}"
     );
     let o = hac(&["env", "describe", "pendulum", "--json"]);
@@ -211,6 +213,16 @@ fn env_list_and_describe() {
     let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
     assert_eq!(d["spec"]["state_dim"], 3);
     assert_eq!(d["defaults"][1]["horizon"], 32);
+    let o = hac(&["env", "describe", "four-rooms-25", "--json"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
+    assert_eq!(
+        d["spec"]["max_actions"], 144,
+        "3 x the 25x25 grid's diameter of 48"
+    );
+    assert_eq!(d["tabular"]["initial_q"], "pessimistic");
+    let o = hac(&["env", "describe", "four-rooms"]);
+    assert!(text(&o.stdout).contains("tabular Q-learning"));
     let o = hac(&["env", "describe", "nope"]);
     assert!(!o.status.success() && text(&o.stderr).contains("unknown environment"));
 }
@@ -369,13 +381,22 @@ fn experiment_runs_the_grid_and_summarises_it() {
 
 #[test]
 fn sigint_stops_training_between_episodes_and_saves_the_run() {
+    interrupt_saves_the_run("mountain-car");
+}
+
+#[test]
+fn sigint_stops_tabular_training_and_saves_the_run() {
+    interrupt_saves_the_run("four-rooms");
+}
+
+fn interrupt_saves_the_run(env: &str) {
     use std::io::{BufRead, BufReader};
-    let out = scratch("sigint");
+    let out = scratch(&format!("sigint-{env}"));
     let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
         .args([
             "train",
             "--env",
-            "mountain-car",
+            env,
             "--episodes",
             "1000000",
             "--set",
@@ -407,5 +428,269 @@ fn sigint_stops_training_between_episodes_and_saves_the_run() {
     assert!(status.success(), "exit {status:?}; stdout: {rest}");
     assert!(rest.contains("interrupted after"), "{rest}");
     assert!(out.join("weights/level0.safetensors").is_file() && out.join("summary.json").is_file());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn four_rooms_trains_with_the_tabular_learner_and_eval_reads_it_back() {
+    let out = scratch("four-rooms");
+    let out_s = out.to_str().unwrap();
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--levels",
+        "3",
+        "--episodes",
+        "250",
+        "--seed",
+        "2",
+        "--out",
+        out_s,
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    assert!(stdout.contains("tabular Q-learning"), "{stdout}");
+    assert_eq!(
+        stdout.lines().filter(|l| l.starts_with("round ")).count(),
+        5,
+        "a round every 50 episodes:\n{stdout}"
+    );
+    for file in [
+        "config.toml",
+        "curve.csv",
+        "curve.svg",
+        "summary.json",
+        "weights/level0.safetensors",
+        "weights/level1.safetensors",
+        "weights/level2.safetensors",
+    ] {
+        assert!(out.join(file).is_file(), "missing {file}");
+    }
+    let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(
+        config.contains("env = \"four-rooms\"")
+            && config.contains("horizon = 4")
+            && config.contains("[tabular]"),
+        "{config}"
+    );
+    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    let last: Vec<&str> = csv.lines().last().unwrap().split(',').collect();
+    assert_eq!(&last[..2], ["5", "250"], "{csv}");
+    let level_updates: Vec<u64> = [7, 12, 17]
+        .iter()
+        .map(|&i| last[i].parse().unwrap())
+        .collect();
+    assert!(level_updates.iter().all(|&u| u > 0), "{csv}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["episodes"], 250);
+
+    let o = hac(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
+    assert_eq!(result["env"], "four-rooms");
+    // A random walk reaches another room's cell in about 5% of episodes; 250 episodes of
+    // training get well above that.
+    let rate = result["success_rate"].as_f64().unwrap();
+    assert!(rate > 0.3, "greedy success from the saved tables: {rate}");
+    // The same seed gives the same episodes.
+    let again = hac(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
+    assert_eq!(text(&again.stdout), text(&o.stdout));
+
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--set",
+        "tabular.learning_rate=0",
+        "--out",
+        &format!("{out_s}-bad"),
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("learning_rate"),
+        "{}",
+        text(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn experiment_runs_four_rooms_seeds() {
+    let out = scratch("four-rooms-experiment");
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "four-rooms",
+        "--levels",
+        "1,2",
+        "--seeds",
+        "3",
+        "--episodes",
+        "100",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "experiment failed: {}", text(&o.stderr));
+    for run in ["four-rooms-1l-seed2", "four-rooms-2l-seed0"] {
+        assert!(out.join(run).join("weights/level0.safetensors").is_file());
+    }
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains("| 1 | 3 |") && summary.contains("| 2 | 3 |"),
+        "{summary}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Checks the GIF signature and counts the frames with a decoder.
+fn gif_frames(path: &Path) -> usize {
+    let bytes = std::fs::read(path).unwrap();
+    assert_eq!(&bytes[..6], b"GIF89a", "{}", path.display());
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::Indexed);
+    let mut decoder = options.read_info(bytes.as_slice()).unwrap();
+    let mut frames = 0;
+    while decoder.read_next_frame().unwrap().is_some() {
+        frames += 1;
+    }
+    frames
+}
+
+#[test]
+fn render_draws_a_pendulum_episode_as_a_gif() {
+    let out = scratch("render-pendulum");
+    let run = out.join("run");
+    let o = hac(&[
+        "train",
+        "--env",
+        "pendulum",
+        "--levels",
+        "2",
+        "--episodes",
+        "1",
+        "--set",
+        "exploration_episodes=1",
+        "--set",
+        "test_episodes=1",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let gif = out.join("episode.gif");
+    let o = hac(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        gif.to_str().unwrap(),
+        "--episode-steps",
+        "30",
+    ]);
+    assert!(o.status.success(), "render failed: {}", text(&o.stderr));
+    // The untrained agent uses the whole 30-action budget: a frame per action plus the last.
+    assert_eq!(gif_frames(&gif), 31);
+    assert!(text(&o.stdout).contains("31 frames"), "{}", text(&o.stdout));
+
+    // Errors name the problem: no run, an unwritable output, an output file that is no GIF.
+    let o = hac(&[
+        "render",
+        "--run",
+        out.join("nope").to_str().unwrap(),
+        "--out",
+        "x.gif",
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("is this a run directory"),
+        "{}",
+        text(&o.stderr)
+    );
+    let blocked = out.join("episode.gif").join("x.gif");
+    let o = hac(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        blocked.to_str().unwrap(),
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains(blocked.to_str().unwrap()),
+        "{}",
+        text(&o.stderr)
+    );
+    let o = hac(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        out.join("run/summary.json").to_str().unwrap(),
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("is a file"),
+        "{}",
+        text(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn render_draws_four_rooms_as_a_gif_or_png_frames() {
+    let out = scratch("render-four-rooms");
+    let run = out.join("run");
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--levels",
+        "3",
+        "--episodes",
+        "100",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let run_s = run.to_str().unwrap();
+    let gif = out.join("episode.gif");
+    let o = hac(&[
+        "render",
+        "--run",
+        run_s,
+        "--out",
+        gif.to_str().unwrap(),
+        "--seed",
+        "4",
+    ]);
+    assert!(o.status.success(), "render failed: {}", text(&o.stderr));
+    let frames = gif_frames(&gif);
+    assert!(frames > 1, "{frames} frames");
+
+    let pngs = out.join("frames");
+    let o = hac(&[
+        "render",
+        "--run",
+        run_s,
+        "--out",
+        pngs.to_str().unwrap(),
+        "--seed",
+        "4",
+    ]);
+    assert!(o.status.success(), "render failed: {}", text(&o.stderr));
+    let mut names: Vec<String> = std::fs::read_dir(&pngs)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names.len(), frames, "the same episode either way");
+    assert_eq!(names[0], "frame-00000.png");
+    let first = std::fs::read(pngs.join(&names[0])).unwrap();
+    assert_eq!(&first[..8], b"\x89PNG\r\n\x1a\n");
+
+    // A directory already holding files is not written into.
+    let o = hac(&["render", "--run", run_s, "--out", pngs.to_str().unwrap()]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("not empty"),
+        "{}",
+        text(&o.stderr)
+    );
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -1,0 +1,215 @@
+//! The grid worlds (`four-rooms`, `four-rooms-25`) in `hac`: tabular HAC from `hac_tabular`,
+//! trained with the same reference schedule as the neural agent ([`crate::schedule`]), written to
+//! the same run directory layout, evaluated and loaded back for rendering.
+//!
+//! `weights/level<i>.safetensors` holds level i's Q table, sparsely (the entries that differ from
+//! the initial value; `hac_tabular::checkpoint` documents the layout). In `curve.csv` the
+//! per-level columns mean: `updates` the Q-learning updates so far, `critic_loss` the mean
+//! squared TD error and `mean_q` the mean value of the entries updated after the last training
+//! episode; `replay_len` and `actor_loss` are 0 (no replay, no actor).
+
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use hac_agent::{LevelReport, RoundReport};
+use hac_core::{Env, EpisodeOutcome, Hierarchy, Mode, NullSink, Rng};
+use hac_tabular::{FourRooms, TabularAgent, TabularHac};
+
+use crate::config::RunConfig;
+use crate::run_dir::{self, RunDir, Summary, Weights};
+use crate::schedule::{self, Schedule, Trained};
+
+/// Whether `env` is a grid world trained by this module.
+pub fn handles(env: &str) -> bool {
+    crate::registry::is_tabular(env)
+}
+
+/// A tabular learner with its environment and random streams: what the schedule drives.
+struct TabularRun {
+    env: FourRooms,
+    learner: TabularHac,
+    train_rng: Rng,
+    test_rng: Rng,
+}
+
+impl TabularRun {
+    /// Fresh tables for `run`; every random stream derives from `run.seed`.
+    fn new(run: &RunConfig) -> Result<Self> {
+        let env = hac_tabular::four_rooms(&run.env)?;
+        let mut root = Rng::seed_from(run.seed);
+        let tabular = run.tabular.clone().unwrap_or_default();
+        let learner = TabularHac::new(&env, run.agent.clone(), &tabular, &mut root)?;
+        Ok(Self {
+            env,
+            learner,
+            train_rng: root.fork(),
+            test_rng: root.fork(),
+        })
+    }
+}
+
+impl schedule::Learner for TabularRun {
+    fn rollout(&mut self) -> usize {
+        self.learner
+            .collect_episode(&mut self.env, &mut self.train_rng)
+            .steps
+    }
+
+    fn learn(&mut self) {
+        self.learner.learn();
+    }
+
+    fn test(&mut self, episodes: usize) -> f32 {
+        self.learner
+            .success_rate(&mut self.env, &mut self.test_rng, episodes)
+    }
+
+    fn level_reports(&self) -> Vec<LevelReport> {
+        let agent = self.learner.agent();
+        (0..agent.num_levels())
+            .map(|level| {
+                let stats = agent.level_stats(level);
+                LevelReport {
+                    updates: stats.updates,
+                    replay_len: 0,
+                    critic_loss: stats.mean_sq_td_error,
+                    actor_loss: 0.0,
+                    mean_q: stats.mean_q,
+                }
+            })
+            .collect()
+    }
+}
+
+/// Writes every level's Q table as `level<i>.safetensors`.
+impl Weights for TabularAgent {
+    fn save(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for level in 0..self.num_levels() {
+            let bytes = self.table_to_safetensors(level)?;
+            run_dir::write_file(&dir.join(format!("level{level}.safetensors")), &bytes)?;
+        }
+        Ok(())
+    }
+}
+
+/// Trains `run` into `dir` with the reference schedule (`on_round` sees every test round), then
+/// saves the tables and the summary; an `interrupt` ends training between episodes.
+pub fn train_into(
+    run: &RunConfig,
+    dir: &mut RunDir,
+    interrupt: &AtomicBool,
+    mut on_round: impl FnMut(&RoundReport),
+) -> Result<(Trained, Summary)> {
+    let mut learner = TabularRun::new(run)?;
+    let schedule = Schedule {
+        episodes: run.episodes,
+        exploration_episodes: run.agent.exploration_episodes,
+        test_episodes: run.agent.test_episodes,
+        stop_at: run.stop_at,
+    };
+    let started = Instant::now();
+    let mut write_error = None;
+    let trained = schedule::run(&mut learner, &schedule, interrupt, |report| {
+        on_round(report);
+        if let Err(e) = dir.record(report) {
+            write_error.get_or_insert(e);
+        }
+    });
+    if let Some(e) = write_error {
+        return Err(e);
+    }
+    let summary = dir.finish(
+        learner.learner.agent(),
+        &trained.curve,
+        started.elapsed().as_secs_f64(),
+    )?;
+    Ok((trained, summary))
+}
+
+/// `hac train` for a grid world, into the already created run directory `dir` at `out`.
+pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
+    let interrupt = crate::interrupt_on_signals()?;
+    println!(
+        "training {} with {} level{} (H = {}, tabular Q-learning), seed {}, {} episodes; test round every {} episodes; writing {}",
+        run.env,
+        run.levels,
+        if run.levels == 1 { "" } else { "s" },
+        run.agent.horizon,
+        run.seed,
+        run.episodes,
+        run.agent.exploration_episodes,
+        out.display()
+    );
+    let (trained, summary) = train_into(run, &mut dir, &interrupt, |report| {
+        println!("{}", schedule::progress_line(report));
+    })?;
+    if interrupt.load(Ordering::Relaxed) {
+        println!(
+            "interrupted after {} episodes: saved what was learned",
+            trained.episodes
+        );
+    }
+    println!(
+        "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
+        summary.episodes,
+        summary.wall_time_s,
+        100.0 * summary.final_success,
+        100.0 * summary.best_success,
+        summary
+            .episodes_to_90
+            .map_or("never".to_string(), |e| format!("after {e} episodes")),
+        out.display()
+    );
+    Ok(())
+}
+
+/// The trained agent of the run in `run_dir` (its tables read from `weights/`), with a fresh
+/// environment. `seed` seeds the agent's tie-breaking between equal values.
+pub fn load(run_dir: &Path, run: &RunConfig, seed: u64) -> Result<(FourRooms, TabularAgent)> {
+    let env = hac_tabular::four_rooms(&run.env)?;
+    let tabular = run.tabular.clone().unwrap_or_default();
+    let mut agent = TabularAgent::new(env.grid(), &run.agent, &tabular, Rng::seed_from(seed))?;
+    let weights = run_dir::weights_dir(run_dir);
+    for level in 0..run.levels {
+        let path = weights.join(format!("level{level}.safetensors"));
+        let bytes = std::fs::read(&path)
+            .with_context(|| format!("reading {} (has the run finished?)", path.display()))?;
+        agent
+            .load_table(level, &bytes)
+            .with_context(|| format!("loading {}", path.display()))?;
+    }
+    Ok((env, agent))
+}
+
+/// `hac eval` for a grid world: `episodes` greedy test episodes of the run in `run_dir`, seeded
+/// by `seed`; calls `on_episode` with each outcome and final state; returns the success rate.
+pub fn evaluate(
+    run_dir: &Path,
+    run: &RunConfig,
+    episodes: usize,
+    seed: u64,
+    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+) -> Result<f32> {
+    let (mut env, mut agent) = load(run_dir, run, seed)?;
+    let mut rng = Rng::seed_from(seed);
+    // Never consulted in test mode, where every level acts greedily.
+    let mut exploration = agent.exploration(&run.agent, rng.fork());
+    let mut hierarchy = Hierarchy::new(env.spec(), &run.agent);
+    let mut successes = 0usize;
+    for _ in 0..episodes {
+        let outcome = hierarchy.run_episode(
+            &mut env,
+            &mut agent,
+            &mut exploration,
+            Mode::Test,
+            &mut rng,
+            &mut NullSink,
+        );
+        successes += usize::from(outcome.success);
+        on_episode(&outcome, env.state());
+    }
+    Ok(successes as f32 / episodes.max(1) as f32)
+}
