@@ -44,7 +44,7 @@ impl<T> Published<T> {
     pub fn wait_for(&self, timeout: Duration, mut ready: impl FnMut(&T) -> bool) -> Option<Arc<T>> {
         let mut latest = self.latest.lock();
         let satisfied = |v: &Option<Arc<T>>, ready: &mut dyn FnMut(&T) -> bool| {
-            v.as_deref().is_some_and(|v| ready(v))
+            v.as_deref().is_some_and(&mut *ready)
         };
         if !satisfied(&latest, &mut ready) {
             self.changed

@@ -57,6 +57,10 @@ enum Command {
     /// Inspect the built-in environments.
     #[command(subcommand)]
     Env(EnvCommand),
+    /// Serve a distributed run: the learner trains on what actors stream to it over gRPC.
+    Learner(hac_learner_service::LearnerArgs),
+    /// Run one actor of a distributed run: connects to a learner service and streams rollouts.
+    Actor(hac_actor_service::ActorArgs),
 }
 
 #[derive(Debug, Args)]
@@ -206,6 +210,8 @@ fn main() {
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
             env_cmd::rollout(&env, seed, state.as_deref())
         }
+        Command::Learner(args) => hac_learner_service::run(args),
+        Command::Actor(args) => hac_actor_service::run(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
