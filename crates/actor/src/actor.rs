@@ -201,10 +201,11 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     }
 
     /// Waits for a snapshot satisfying `ready` (or a final one), in slices so that an interrupt
-    /// is noticed; `None` if interrupted.
+    /// is noticed; `None` if interrupted. `ready` also gets the learner's newest version, read
+    /// again each slice (it drops when a restarted learner starts counting again).
     fn wait_weights(
         &self,
-        ready: impl Fn(&WeightsSnapshot) -> bool,
+        ready: impl Fn(&WeightsSnapshot, u64) -> bool,
     ) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
         let started = Instant::now();
         loop {
@@ -212,10 +213,11 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                 return Ok(None);
             }
             let slice = Duration::from_millis(200);
+            let newest = self.link.learner_version();
             if let Some(w) = self
                 .link
                 .weights()
-                .wait_for(slice, |w| w.run_finished || ready(w))
+                .wait_for(slice, |w| w.run_finished || ready(w, newest))
             {
                 return Ok(Some(w));
             }
@@ -246,11 +248,10 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         loop {
             let sent = self.s.summary.episodes;
             let snapshot = if self.options.lockstep {
-                self.wait_weights(|w| w.episodes >= sent)?
+                self.wait_weights(|w, _| w.episodes >= sent)?
             } else {
-                let newest = self.link.learner_version();
                 let lag = self.s.max_weights_lag;
-                self.wait_weights(|w| w.version.saturating_add(lag) >= newest)?
+                self.wait_weights(|w, newest| w.version.saturating_add(lag) >= newest)?
             };
             let Some(snapshot) = snapshot else {
                 return Ok(());
@@ -340,7 +341,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let mut next_at = every;
         let mut last_version = 0;
         loop {
-            let Some(snapshot) = self.wait_weights(|w| w.episodes >= next_at)? else {
+            let Some(snapshot) = self.wait_weights(|w, _| w.episodes >= next_at)? else {
                 return Ok(());
             };
             if snapshot.version != last_version {

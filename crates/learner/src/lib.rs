@@ -886,6 +886,14 @@ impl Shared {
                 if caught_up || slot.completed % every == 0 {
                     slot.weights = Arc::new(learner.actor().to_safetensors());
                     slot.weights_updates = slot.completed;
+                    // Under sustained ingest a level is rarely caught up, yet these weights
+                    // cover every episode whose owed updates they include: the uncredited ones
+                    // and the first `completed / r` credited ones.
+                    let r = limiter.config().updates_per_episode;
+                    let served =
+                        ((slot.completed as f64 / r).floor() as u64).min(status.credited_episodes);
+                    let uncredited = status.episodes - status.credited_episodes;
+                    slot.covered_episodes = slot.covered_episodes.max(uncredited + served);
                 }
                 if caught_up {
                     slot.covered_episodes = slot.covered_episodes.max(status.episodes);

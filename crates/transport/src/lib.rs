@@ -2,11 +2,13 @@
 //!
 //! - [`InProcess`]: direct calls into a [`Learner`] in the same process (the embedded `hac train`
 //!   and tests). Nothing is lost in transit, so every message is acknowledged as it is stored.
-//! - gRPC (module `grpc`): the learner service over tonic, for actors on any host.
+//! - [`grpc`]: the learner service over tonic, for actors on any host: the server adapter
+//!   ([`grpc::serve`], [`grpc::LearnerGrpc`]) and the actor's side ([`grpc::GrpcLink`]).
 //!
 //! The actor loop (`hac-actor`) is written against the trait only, so every transport runs the
 //! same actor code.
 
+pub mod grpc;
 mod in_process;
 
 use std::time::Duration;

@@ -13,15 +13,13 @@
 //! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
 mod bench;
-mod config;
 mod env_cmd;
 mod experiment;
-mod plot;
-mod registry;
 mod render;
-mod run_dir;
 mod schedule;
 mod tabular_cmd;
+
+use hac_run::{config, plot, registry, run_dir};
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -73,6 +71,10 @@ enum Command {
     /// Measure the system's throughput.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Serve a distributed run: the learner trains on what actors stream to it over gRPC.
+    Learner(hac_learner_service::LearnerArgs),
+    /// Run one actor of a distributed run: connects to a learner service and streams rollouts.
+    Actor(hac_actor_service::ActorArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -264,6 +266,8 @@ fn main() {
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
             env_cmd::rollout(&env, seed, state.as_deref())
         }
+        Command::Learner(args) => hac_learner_service::run(args),
+        Command::Actor(args) => hac_actor_service::run(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

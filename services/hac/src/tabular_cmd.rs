@@ -18,7 +18,7 @@ use hac_core::{Env, EpisodeOutcome, Hierarchy, Mode, NullSink, Rng};
 use hac_tabular::{FourRooms, TabularAgent, TabularHac};
 
 use crate::config::RunConfig;
-use crate::run_dir::{self, RunDir, Summary, Weights};
+use crate::run_dir::{self, RunDir, Summary};
 use crate::schedule::{self, Schedule, Trained};
 
 /// Whether `env` is a grid world trained by this module.
@@ -80,18 +80,6 @@ impl schedule::Learner for TabularRun {
                 }
             })
             .collect()
-    }
-}
-
-/// Writes every level's Q table as `level<i>.safetensors`.
-impl Weights for TabularAgent {
-    fn save(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        for level in 0..self.num_levels() {
-            let bytes = self.table_to_safetensors(level)?;
-            run_dir::write_file(&dir.join(format!("level{level}.safetensors")), &bytes)?;
-        }
-        Ok(())
     }
 }
 

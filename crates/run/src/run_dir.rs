@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use hac_agent::{Agent, RoundReport};
+use hac_tabular::TabularAgent;
 use serde::Serialize;
 
 use crate::config::RunConfig;
@@ -30,6 +31,18 @@ pub trait Weights {
 impl Weights for Agent {
     fn save(&self, dir: &Path) -> Result<()> {
         Ok(Agent::save(self, dir)?)
+    }
+}
+
+/// Writes every level's Q table as `level<i>.safetensors`.
+impl Weights for TabularAgent {
+    fn save(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for level in 0..self.num_levels() {
+            let bytes = self.table_to_safetensors(level)?;
+            write_file(&dir.join(format!("level{level}.safetensors")), &bytes)?;
+        }
+        Ok(())
     }
 }
 

@@ -1,0 +1,14 @@
+//! What defines a run and what it leaves behind, shared by `hac` and the daemons so that every
+//! entry point resolves a run identically:
+//!
+//! - [`config`]: the layered run configuration (environment defaults, a TOML file, `HAC_*`
+//!   variables, flags), validated with errors that name the key;
+//! - [`registry`]: every built-in environment by name (continuous tasks and grid worlds);
+//! - [`run_dir`]: the run directory (`config.toml`, `curve.csv`, `curve.svg`, weights,
+//!   `summary.json`);
+//! - [`plot`]: SVG learning curves.
+
+pub mod config;
+pub mod plot;
+pub mod registry;
+pub mod run_dir;

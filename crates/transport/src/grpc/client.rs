@@ -1,0 +1,845 @@
+//! [`GrpcLink`]: the actor's side of the learner service.
+//!
+//! The link owns a small tokio runtime (one worker thread) with two tasks: the *ingest* task keeps
+//! an `Ingest` stream open while anything waits for an ack, and the *weights* task keeps a
+//! `WatchWeights` stream open and publishes each snapshot into the link's own
+//! [`Published`] cell. The trait's blocking methods meet them in the *outbox*: every message the
+//! actor sends stays there, numbered, until the learner acknowledges it.
+//!
+//! # Failures
+//! - The learner unreachable, or a stream broken: reconnect after an exponential backoff with
+//!   jitter and resend every unacknowledged message in order (the learner stores each sequence
+//!   once). After `give_up_after` without an answer, the link fails with
+//!   [`LinkError::Unavailable`].
+//! - `unknown_actor` or `stale_incarnation` (the learner restarted and lost its registry, or the
+//!   id registered again elsewhere): register again with the same [`Registration`], check that the
+//!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
+//!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
+//! - `finished`: [`LinkError::Finished`]. Any other refusal: [`LinkError::Refused`].
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use hac_core::Rng;
+use hac_learner::{Published, RejectReason};
+use hac_proto::{Admission, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb};
+use parking_lot::{Condvar, Mutex};
+use prost::Message as _;
+use tokio::runtime::Runtime;
+use tokio::sync::{Notify, mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::codegen::http::uri::PathAndQuery;
+use tonic::transport::{Channel, Endpoint};
+use tonic::{Code, Status};
+
+use super::{reject_reason, until_set};
+use crate::{ActorLink, LinkError};
+
+/// How a [`GrpcLink`] talks to the learner.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GrpcLinkOptions {
+    /// Most messages sent and not yet acknowledged; [`ActorLink::send`] blocks while the window
+    /// is full, which is how the learner's backpressure reaches the actor.
+    pub window: usize,
+    /// First delay before reconnecting; each failure in a row doubles it, up to `backoff_max`.
+    /// Each delay is drawn uniformly from its upper half (jitter), so actors that lost the same
+    /// learner do not come back in lockstep.
+    pub backoff_min: Duration,
+    pub backoff_max: Duration,
+    /// Longest wait for a TCP connection.
+    pub connect_timeout: Duration,
+    /// Give up (fail with [`LinkError::Unavailable`]) after the learner has not answered for this
+    /// long.
+    pub give_up_after: Duration,
+    /// Largest message sent or received, in bytes (weights can be large).
+    pub max_message_bytes: usize,
+    /// Seed of the backoff jitter.
+    pub jitter_seed: u64,
+}
+
+impl Default for GrpcLinkOptions {
+    fn default() -> Self {
+        let nanos = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        Self {
+            window: 256,
+            backoff_min: Duration::from_millis(50),
+            backoff_max: Duration::from_secs(5),
+            connect_timeout: Duration::from_secs(5),
+            give_up_after: Duration::from_secs(300),
+            max_message_bytes: 64 << 20,
+            jitter_seed: (u64::from(std::process::id()) << 32) | u64::from(nanos),
+        }
+    }
+}
+
+/// Why [`GrpcLink::connect`] could not make a link.
+#[derive(Debug, thiserror::Error)]
+pub enum ConnectError {
+    #[error("invalid learner url `{url}`: {message}")]
+    InvalidUrl { url: String, message: String },
+    #[error("the window must be at least 1")]
+    ZeroWindow,
+    #[error("starting the link's runtime: {0}")]
+    Runtime(#[source] std::io::Error),
+}
+
+/// Re-registrations in a row without an ack or a report getting through before the link gives
+/// up: two actors sharing an id would otherwise take turns superseding each other for ever.
+const MAX_REREGISTRATIONS: u32 = 5;
+/// Requests queued for the ingest stream ahead of HTTP/2 flow control.
+const REQUEST_QUEUE: usize = 8;
+/// Reconnect warnings per stream at most this often (the rest go to debug).
+const WARN_EVERY: Duration = Duration::from_secs(5);
+const INGEST_PATH: &str = "/hac.v1.Learner/Ingest";
+
+/// An [`ActorLink`] to a learner service over gRPC. Its methods block the calling thread (they
+/// must not be called from async code); the network work happens on the link's own runtime,
+/// which stops when the link is dropped.
+#[derive(Debug)]
+pub struct GrpcLink {
+    shared: Arc<Shared>,
+    channel: Channel,
+    /// `Some` until drop.
+    runtime: Option<Runtime>,
+    tasks_started: bool,
+}
+
+#[derive(Debug)]
+struct Shared {
+    options: GrpcLinkOptions,
+    outbox: Mutex<Outbox>,
+    /// Signalled on every ack and failure: senders waiting for room, flushes.
+    changed: Condvar,
+    /// Signalled when a message enters the outbox: the ingest task.
+    queued: Notify,
+    weights: Published<WeightsSnapshot>,
+    learner_version: AtomicU64,
+    /// Set when the link is dropped: the tasks end.
+    closed: watch::Sender<bool>,
+    /// One re-registration at a time (the ingest task and a report may both find the learner
+    /// restarted). An async mutex: it is held across the register call.
+    registering: tokio::sync::Mutex<()>,
+    jitter: Mutex<Rng>,
+}
+
+/// Messages sent and not yet acknowledged, and the registration they are numbered under.
+#[derive(Debug, Default)]
+struct Outbox {
+    registration: Option<Registration>,
+    digest: String,
+    /// 0 until registered.
+    incarnation: u64,
+    /// Sequences `acked_through + 1 ..= acked_through + unacked.len()`, in order.
+    unacked: VecDeque<Arc<pb::IngestRequest>>,
+    acked_through: u64,
+    failure: Option<LinkError>,
+    /// Re-registrations since the learner last acknowledged something.
+    reregistrations: u32,
+}
+
+impl Outbox {
+    /// The message after `sent_through`, if it is in the outbox.
+    fn after(&self, sent_through: u64) -> Option<Arc<pb::IngestRequest>> {
+        let from = sent_through.max(self.acked_through) - self.acked_through;
+        usize::try_from(from)
+            .ok()
+            .and_then(|i| self.unacked.get(i).cloned())
+    }
+
+    fn next_sequence(&self) -> u64 {
+        self.acked_through + self.unacked.len() as u64 + 1
+    }
+
+    fn actor_id(&self) -> &str {
+        self.registration
+            .as_ref()
+            .map_or("", |r| r.actor_id.as_str())
+    }
+}
+
+impl GrpcLink {
+    /// A link to the learner at `url` (`http://host:port`; a bare `host:port` means `http://`).
+    /// Connects lazily: nothing is sent before [`register`](ActorLink::register), which waits
+    /// for the learner to come up (within `give_up_after`).
+    pub fn connect(url: &str, options: GrpcLinkOptions) -> Result<Self, ConnectError> {
+        if options.window == 0 {
+            return Err(ConnectError::ZeroWindow);
+        }
+        let url = if url.contains("://") {
+            url.to_string()
+        } else {
+            format!("http://{url}")
+        };
+        let endpoint = Endpoint::from_shared(url.clone())
+            .map_err(|e| ConnectError::InvalidUrl {
+                url: url.clone(),
+                message: e.to_string(),
+            })?
+            .connect_timeout(options.connect_timeout)
+            .tcp_nodelay(true)
+            .http2_keep_alive_interval(Duration::from_secs(10))
+            .keep_alive_timeout(Duration::from_secs(20))
+            .keep_alive_while_idle(true);
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .thread_name("hac-link")
+            .enable_all()
+            .build()
+            .map_err(ConnectError::Runtime)?;
+        let channel = {
+            let _entered = runtime.enter();
+            endpoint.connect_lazy()
+        };
+        let shared = Arc::new(Shared {
+            jitter: Mutex::new(Rng::seed_from(options.jitter_seed)),
+            options,
+            outbox: Mutex::default(),
+            changed: Condvar::new(),
+            queued: Notify::new(),
+            weights: Published::default(),
+            learner_version: AtomicU64::new(0),
+            closed: watch::Sender::new(false),
+            registering: tokio::sync::Mutex::new(()),
+        });
+        Ok(Self {
+            shared,
+            channel,
+            runtime: Some(runtime),
+            tasks_started: false,
+        })
+    }
+
+    /// Messages sent and not yet acknowledged.
+    pub fn unacked(&self) -> usize {
+        self.shared.outbox.lock().unacked.len()
+    }
+
+    /// The incarnation messages are numbered under now (0 before registration).
+    pub fn incarnation(&self) -> u64 {
+        self.shared.outbox.lock().incarnation
+    }
+
+    fn runtime(&self) -> &Runtime {
+        self.runtime.as_ref().expect("the runtime lives until drop")
+    }
+}
+
+impl Drop for GrpcLink {
+    fn drop(&mut self) {
+        self.shared.closed.send_replace(true);
+        if let Some(runtime) = self.runtime.take() {
+            runtime.shutdown_background();
+        }
+    }
+}
+
+impl ActorLink for GrpcLink {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        let shared = self.shared.clone();
+        let channel = self.channel.clone();
+        let admission =
+            self.runtime()
+                .block_on(register_until_admitted(&shared, &channel, registration))?;
+        {
+            let mut outbox = shared.outbox.lock();
+            outbox.registration = Some(registration.clone());
+            outbox.digest = admission.run_config_digest.clone();
+            renumber(&mut outbox, admission.incarnation);
+        }
+        shared.learner_version.store(0, Ordering::Relaxed);
+        if !self.tasks_started {
+            self.tasks_started = true;
+            let runtime = self.runtime();
+            runtime.spawn(ingest_task(shared.clone(), channel.clone()));
+            runtime.spawn(weights_task(shared, channel));
+        }
+        Ok(admission)
+    }
+
+    fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
+        // Encode outside the lock; the numbering is filled in under it.
+        let mut msg = pb::IngestRequest::from(IngestMessage {
+            actor_id: String::new(),
+            incarnation: 0,
+            sequence: 0,
+            item,
+        });
+        let shared = &self.shared;
+        let mut outbox = shared.outbox.lock();
+        loop {
+            if let Some(e) = &outbox.failure {
+                return Err(e.clone());
+            }
+            if outbox.incarnation == 0 {
+                return Err(LinkError::Refused("send before register".into()));
+            }
+            if outbox.unacked.len() < shared.options.window {
+                break;
+            }
+            shared
+                .changed
+                .wait_for(&mut outbox, Duration::from_millis(500));
+        }
+        msg.actor_id = outbox.actor_id().to_string();
+        msg.incarnation = outbox.incarnation;
+        msg.sequence = outbox.next_sequence();
+        outbox.unacked.push_back(Arc::new(msg));
+        drop(outbox);
+        shared.queued.notify_one();
+        Ok(())
+    }
+
+    fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        let deadline = Instant::now() + timeout;
+        let mut outbox = self.shared.outbox.lock();
+        loop {
+            if let Some(e) = &outbox.failure {
+                return Err(e.clone());
+            }
+            if outbox.unacked.is_empty() {
+                return Ok(());
+            }
+            if self
+                .shared
+                .changed
+                .wait_until(&mut outbox, deadline)
+                .timed_out()
+                && !outbox.unacked.is_empty()
+            {
+                return Err(LinkError::Unavailable(format!(
+                    "{} messages still unacknowledged after {timeout:?}",
+                    outbox.unacked.len()
+                )));
+            }
+        }
+    }
+
+    fn weights(&self) -> &Published<WeightsSnapshot> {
+        &self.shared.weights
+    }
+
+    fn learner_version(&self) -> u64 {
+        self.shared.learner_version.load(Ordering::Relaxed)
+    }
+
+    fn report_evaluation(
+        &mut self,
+        weights_version: u64,
+        episodes: u32,
+        successes: u32,
+    ) -> Result<(), LinkError> {
+        let shared = self.shared.clone();
+        let channel = self.channel.clone();
+        self.runtime().block_on(async move {
+            let mut client = learner_client(&shared, &channel);
+            let mut retry = Retry::new(&shared, "evaluation report");
+            loop {
+                let (actor_id, incarnation) = {
+                    let outbox = shared.outbox.lock();
+                    (outbox.actor_id().to_string(), outbox.incarnation)
+                };
+                let report = pb::EvaluationReport {
+                    actor_id,
+                    incarnation,
+                    weights_version,
+                    episodes,
+                    successes,
+                };
+                let status = match client.report_evaluation(report).await {
+                    Ok(_) => {
+                        shared.outbox.lock().reregistrations = 0;
+                        return Ok(());
+                    }
+                    Err(status) => status,
+                };
+                match Failure::of(&status) {
+                    Failure::Retry => retry.wait(&status).await?,
+                    Failure::Reregister => {
+                        reregister(&shared, &channel, incarnation).await?;
+                        // The weights evaluated came from the learner that forgot this actor.
+                        tracing::warn!(
+                            weights_version,
+                            "dropping an evaluation of weights from before the learner restarted"
+                        );
+                        return Ok(());
+                    }
+                    Failure::Finished => return Err(LinkError::Finished),
+                    Failure::Refused => return Err(LinkError::Refused(status.message().into())),
+                }
+            }
+        })
+    }
+}
+
+/// What to do about a failed call or stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Failure {
+    /// The learner is unreachable, restarting or shutting down: try again after a backoff.
+    Retry,
+    /// The learner does not know this incarnation: register again.
+    Reregister,
+    Finished,
+    /// The learner refused what the actor sent: retrying cannot help.
+    Refused,
+}
+
+impl Failure {
+    fn of(status: &Status) -> Self {
+        match reject_reason(status) {
+            Some(RejectReason::Finished) => Self::Finished,
+            Some(RejectReason::UnknownActor | RejectReason::StaleIncarnation) => Self::Reregister,
+            Some(_) => Self::Refused,
+            // No reason: tonic, hyper or the network speaking, not the learner.
+            None => match status.code() {
+                Code::Unavailable
+                | Code::Unknown
+                | Code::Internal
+                | Code::Cancelled
+                | Code::DeadlineExceeded
+                | Code::Aborted
+                | Code::ResourceExhausted => Self::Retry,
+                _ => Self::Refused,
+            },
+        }
+    }
+}
+
+/// Backoff, give-up deadline and rate-limited warnings for one kind of call.
+struct Retry<'a> {
+    shared: &'a Shared,
+    what: &'static str,
+    delay: Duration,
+    attempts: u64,
+    failing_since: Option<Instant>,
+    last_warning: Option<Instant>,
+    closed: watch::Receiver<bool>,
+}
+
+impl<'a> Retry<'a> {
+    fn new(shared: &'a Shared, what: &'static str) -> Self {
+        Self {
+            shared,
+            what,
+            delay: shared.options.backoff_min,
+            attempts: 0,
+            failing_since: None,
+            last_warning: None,
+            closed: shared.closed.subscribe(),
+        }
+    }
+
+    /// The learner answered: start over with the shortest delay.
+    fn succeeded(&mut self) {
+        if self.attempts > 0 {
+            tracing::info!(
+                stream = self.what,
+                attempts = self.attempts,
+                "learner reachable again"
+            );
+        }
+        self.delay = self.shared.options.backoff_min;
+        self.attempts = 0;
+        self.failing_since = None;
+        self.last_warning = None;
+    }
+
+    /// The learner answered, though nothing went through yet: the give-up clock starts over
+    /// (the backoff does not).
+    fn answered(&mut self) {
+        self.failing_since = None;
+    }
+
+    /// Sleeps before the next attempt; fails once the learner has been silent for
+    /// `give_up_after`, or if the link closes meanwhile. After the final weights the learner
+    /// is expected to go away: then the answer is [`LinkError::Finished`] at once.
+    async fn wait(&mut self, status: &Status) -> Result<(), LinkError> {
+        if self.shared.weights.latest().is_some_and(|w| w.run_finished) {
+            return Err(LinkError::Finished);
+        }
+        let options = &self.shared.options;
+        let since = *self.failing_since.get_or_insert_with(Instant::now);
+        if since.elapsed() >= options.give_up_after {
+            return Err(LinkError::Unavailable(format!(
+                "no answer from the learner for {:?}: {}",
+                options.give_up_after,
+                status.message()
+            )));
+        }
+        self.attempts += 1;
+        let upper = self.delay;
+        self.delay = (upper * 2).min(options.backoff_max);
+        let delay = upper.mul_f64(0.5 + 0.5 * self.shared.jitter.lock().unit_f64());
+        if self
+            .last_warning
+            .is_none_or(|at| at.elapsed() >= WARN_EVERY)
+        {
+            self.last_warning = Some(Instant::now());
+            tracing::warn!(
+                stream = self.what,
+                attempts = self.attempts,
+                retry_in = ?delay,
+                code = ?status.code(),
+                error = status.message(),
+                "learner unreachable; retrying"
+            );
+        } else {
+            tracing::debug!(stream = self.what, attempts = self.attempts, retry_in = ?delay, error = status.message(), "retrying");
+        }
+        tokio::select! {
+            () = tokio::time::sleep(delay) => Ok(()),
+            () = until_set(&mut self.closed) => Err(LinkError::Closed),
+        }
+    }
+}
+
+fn learner_client(
+    shared: &Shared,
+    channel: &Channel,
+) -> pb::learner_client::LearnerClient<Channel> {
+    let max = shared.options.max_message_bytes;
+    pb::learner_client::LearnerClient::new(channel.clone())
+        .max_decoding_message_size(max)
+        .max_encoding_message_size(max)
+}
+
+async fn register_until_admitted(
+    shared: &Shared,
+    channel: &Channel,
+    registration: &Registration,
+) -> Result<Admission, LinkError> {
+    let mut client = learner_client(shared, channel);
+    let mut retry = Retry::new(shared, "register");
+    loop {
+        let status = match client
+            .register(pb::RegisterRequest::from(registration.clone()))
+            .await
+        {
+            Ok(response) => {
+                return Admission::try_from(response.into_inner()).map_err(|e| {
+                    LinkError::Refused(format!("the learner's admission is invalid: {e}"))
+                });
+            }
+            Err(status) => status,
+        };
+        match Failure::of(&status) {
+            Failure::Retry => retry.wait(&status).await?,
+            Failure::Finished => return Err(LinkError::Finished),
+            Failure::Reregister | Failure::Refused => {
+                return Err(LinkError::Refused(status.message().into()));
+            }
+        }
+    }
+}
+
+/// Numbers the outbox's messages from sequence 1 under `incarnation`.
+fn renumber(outbox: &mut Outbox, incarnation: u64) {
+    outbox.incarnation = incarnation;
+    outbox.acked_through = 0;
+    for (sequence, msg) in (1..).zip(outbox.unacked.iter_mut()) {
+        // Copies only a message still queued in a stream being torn down.
+        let msg = Arc::make_mut(msg);
+        msg.incarnation = incarnation;
+        msg.sequence = sequence;
+    }
+}
+
+/// Registers again after the learner refused `failed_incarnation` as unknown or stale, unless that
+/// was already done; renumbers the outbox under the new incarnation.
+async fn reregister(
+    shared: &Shared,
+    channel: &Channel,
+    failed_incarnation: u64,
+) -> Result<(), LinkError> {
+    let _one_at_a_time = shared.registering.lock().await;
+    let (registration, digest) = {
+        let mut outbox = shared.outbox.lock();
+        if outbox.incarnation != failed_incarnation {
+            return Ok(());
+        }
+        outbox.reregistrations += 1;
+        if outbox.reregistrations > MAX_REREGISTRATIONS {
+            return Err(LinkError::Refused(format!(
+                "registered {MAX_REREGISTRATIONS} times in a row without getting anything through: \
+                 is another actor using the id `{}`?",
+                outbox.actor_id()
+            )));
+        }
+        let registration = outbox
+            .registration
+            .clone()
+            .ok_or_else(|| LinkError::Refused("send before register".into()))?;
+        (registration, outbox.digest.clone())
+    };
+    let admission = register_until_admitted(shared, channel, &registration).await?;
+    if admission.run_config_digest != digest {
+        return Err(LinkError::Refused(format!(
+            "the learner runs a different config now (digest {}, registered under {digest}): \
+             restart the actor",
+            admission.run_config_digest
+        )));
+    }
+    let resent = {
+        let mut outbox = shared.outbox.lock();
+        renumber(&mut outbox, admission.incarnation);
+        outbox.unacked.len()
+    };
+    shared.learner_version.store(0, Ordering::Relaxed);
+    tracing::info!(
+        actor = %registration.actor_id,
+        incarnation = admission.incarnation,
+        resent,
+        "registered again with the learner"
+    );
+    Ok(())
+}
+
+impl Shared {
+    fn fail(&self, error: LinkError) {
+        let mut outbox = self.outbox.lock();
+        if outbox.failure.is_none() {
+            if matches!(error, LinkError::Finished) {
+                tracing::info!("the learner says the run is finished");
+            } else {
+                tracing::warn!(%error, "link failed");
+            }
+            outbox.failure = Some(error);
+        }
+        drop(outbox);
+        self.changed.notify_all();
+    }
+
+    fn on_ack(&self, ack: &pb::IngestAck) {
+        let mut outbox = self.outbox.lock();
+        // Never past what was sent, whatever the learner says.
+        let through = ack.acked_through.min(outbox.next_sequence() - 1);
+        while outbox.acked_through < through {
+            outbox.unacked.pop_front();
+            outbox.acked_through += 1;
+        }
+        outbox.reregistrations = 0;
+        drop(outbox);
+        self.learner_version
+            .store(ack.weights_version, Ordering::Relaxed);
+        self.changed.notify_all();
+    }
+}
+
+/// Why one ingest stream ended.
+enum StreamEnd {
+    Closed,
+    Failed(Status),
+}
+
+/// Keeps an ingest stream open while anything waits for an ack; reconnects, re-registers and
+/// resends as the module docs say.
+async fn ingest_task(shared: Arc<Shared>, channel: Channel) {
+    let mut closed = shared.closed.subscribe();
+    let mut retry = Retry::new(&shared, "ingest");
+    loop {
+        // Open a stream only when there is something to send.
+        loop {
+            if shared.outbox.lock().unacked.is_empty() {
+                tokio::select! {
+                    () = shared.queued.notified() => {}
+                    () = until_set(&mut closed) => return,
+                }
+            } else {
+                break;
+            }
+        }
+        let incarnation = shared.outbox.lock().incarnation;
+        let status = match ingest_stream(&shared, &channel, &mut retry).await {
+            StreamEnd::Closed => return,
+            StreamEnd::Failed(status) => status,
+        };
+        let outcome = match Failure::of(&status) {
+            Failure::Retry => retry.wait(&status).await,
+            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
+            Failure::Finished => Err(LinkError::Finished),
+            Failure::Refused => Err(LinkError::Refused(status.message().into())),
+        };
+        match outcome {
+            Ok(()) => {}
+            Err(LinkError::Closed) => return,
+            Err(e) => return shared.fail(e),
+        }
+    }
+}
+
+/// One ingest stream: sends every unacknowledged message from the oldest on, then each new one;
+/// applies acks as they come; returns when the stream fails or the link closes.
+async fn ingest_stream(shared: &Shared, channel: &Channel, retry: &mut Retry<'_>) -> StreamEnd {
+    let mut closed = shared.closed.subscribe();
+    let max = shared.options.max_message_bytes;
+    let mut grpc = tonic::client::Grpc::new(channel.clone())
+        .max_decoding_message_size(max)
+        .max_encoding_message_size(max);
+    let (tx, rx) = mpsc::channel::<Arc<pb::IngestRequest>>(REQUEST_QUEUE);
+    let opened = async {
+        grpc.ready()
+            .await
+            .map_err(|e| Status::unavailable(e.to_string()))?;
+        grpc.streaming(
+            tonic::Request::new(ReceiverStream::new(rx)),
+            PathAndQuery::from_static(INGEST_PATH),
+            IngestCodec,
+        )
+        .await
+    };
+    let response = tokio::select! {
+        response = opened => response,
+        () = until_set(&mut closed) => return StreamEnd::Closed,
+    };
+    let mut acks = match response {
+        Ok(response) => response.into_inner(),
+        Err(status) => return StreamEnd::Failed(status),
+    };
+    retry.answered();
+    let mut sent_through = shared.outbox.lock().acked_through;
+    loop {
+        let next = shared.outbox.lock().after(sent_through);
+        tokio::select! {
+            biased;
+            () = until_set(&mut closed) => return StreamEnd::Closed,
+            ack = acks.message() => match ack {
+                Ok(Some(ack)) => {
+                    retry.succeeded();
+                    shared.on_ack(&ack);
+                }
+                Ok(None) => {
+                    return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"));
+                }
+                Err(status) => return StreamEnd::Failed(status),
+            },
+            permit = tx.reserve(), if next.is_some() => {
+                let (Ok(permit), Some(msg)) = (permit, next) else {
+                    return StreamEnd::Failed(Status::unavailable("the ingest stream closed"));
+                };
+                sent_through = msg.sequence;
+                permit.send(msg);
+            }
+            () = shared.queued.notified(), if next.is_none() => {}
+        }
+    }
+}
+
+/// Keeps a weights stream open and publishes every snapshot it brings. Asks for the learner's
+/// current version each time (`min_version` 0): after a restart, versions start again lower, and
+/// the link takes them as they come.
+async fn weights_task(shared: Arc<Shared>, channel: Channel) {
+    let mut closed = shared.closed.subscribe();
+    let mut retry = Retry::new(&shared, "weights");
+    let mut client = learner_client(&shared, &channel);
+    loop {
+        let request = {
+            let outbox = shared.outbox.lock();
+            pb::WatchWeightsRequest {
+                actor_id: outbox.actor_id().to_string(),
+                incarnation: outbox.incarnation,
+                min_version: 0,
+            }
+        };
+        let watched = async {
+            let mut stream = client.watch_weights(request).await?.into_inner();
+            retry.answered();
+            loop {
+                let Some(msg) = stream.message().await? else {
+                    return Err(Status::unavailable("the learner ended the weights stream"));
+                };
+                let snapshot = WeightsSnapshot::try_from(msg).map_err(|e| {
+                    Status::unavailable(format!("invalid weights from the learner: {e}"))
+                })?;
+                retry.succeeded();
+                let previous = shared.weights.latest().map_or(0, |w| w.version);
+                if snapshot.version < previous {
+                    // Versions only grow within one learner: this is a restarted one. Its acks
+                    // will say the same, but an actor with nothing to send sees no acks, and
+                    // would wait for versions the new learner has not reached.
+                    tracing::info!(
+                        version = snapshot.version,
+                        previous,
+                        "weights versions start again: the learner restarted"
+                    );
+                    shared
+                        .learner_version
+                        .store(snapshot.version, Ordering::Relaxed);
+                }
+                let last = snapshot.run_finished;
+                shared.weights.publish(Arc::new(snapshot));
+                if last {
+                    return Ok(());
+                }
+            }
+        };
+        let status = tokio::select! {
+            result = watched => match result {
+                Ok(()) => return,
+                Err(status) => status,
+            },
+            () = until_set(&mut closed) => return,
+        };
+        let outcome = match Failure::of(&status) {
+            Failure::Retry | Failure::Reregister => retry.wait(&status).await,
+            Failure::Finished => return,
+            Failure::Refused => Err(LinkError::Refused(status.message().into())),
+        };
+        match outcome {
+            Ok(()) => {}
+            // Actors waiting for weights time out by their own rules; the outbox learns of it.
+            Err(LinkError::Closed) => return,
+            Err(e) => return shared.fail(e),
+        }
+    }
+}
+
+/// The ingest stream's codec: requests are shared with the outbox (kept until acknowledged, so
+/// resending copies nothing), acks are plain prost messages.
+#[derive(Debug, Clone, Copy)]
+struct IngestCodec;
+
+#[derive(Debug, Clone, Copy)]
+struct SharedRequestEncoder;
+
+#[derive(Debug, Clone, Copy)]
+struct AckDecoder;
+
+impl Codec for IngestCodec {
+    type Encode = Arc<pb::IngestRequest>;
+    type Decode = pb::IngestAck;
+    type Encoder = SharedRequestEncoder;
+    type Decoder = AckDecoder;
+
+    fn encoder(&mut self) -> Self::Encoder {
+        SharedRequestEncoder
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        AckDecoder
+    }
+}
+
+impl Encoder for SharedRequestEncoder {
+    type Item = Arc<pb::IngestRequest>;
+    type Error = Status;
+
+    fn encode(&mut self, item: Self::Item, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        item.encode(dst)
+            .map_err(|e| Status::internal(format!("encoding an ingest request: {e}")))
+    }
+}
+
+impl Decoder for AckDecoder {
+    type Item = pb::IngestAck;
+    type Error = Status;
+
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<pb::IngestAck>, Status> {
+        pb::IngestAck::decode(src)
+            .map(Some)
+            .map_err(|e| Status::internal(e.to_string()))
+    }
+}

@@ -1,0 +1,53 @@
+//! The learner service over gRPC (tonic), both ends of it.
+//!
+//! - `server`: [`LearnerGrpc`] adapts a [`Learner`](hac_learner::Learner) to the generated
+//!   `hac.v1.Learner` service, and [`serve`] runs it on a bound listener until a shutdown future
+//!   completes.
+//! - `client`: [`GrpcLink`], the [`ActorLink`](crate::ActorLink) of actors on any host: a small
+//!   tokio runtime of its own behind the trait's blocking methods, with a window of unacknowledged
+//!   messages, reconnects with backoff, and re-registration after a learner restart.
+//!
+//! # Refusals on the wire
+//! Every refusal is a gRPC status whose code says what kind of problem it is and whose ASCII
+//! metadata [`REJECT_REASON_KEY`] names the [`RejectReason`] it was counted under, so that a client
+//! can tell refusals apart without reading messages:
+//!
+//! | reason                                                  | code                  |
+//! |---------------------------------------------------------|-----------------------|
+//! | `malformed`, `invalid_batch`, `not_finite`, `level_out_of_range` | `INVALID_ARGUMENT` |
+//! | `oversized` (above the server's message size limit)     | `RESOURCE_EXHAUSTED`  |
+//! | `oversized` (`batch.count` above `max_batch_transitions`) | `INVALID_ARGUMENT`  |
+//! | `unknown_actor`                                         | `NOT_FOUND`           |
+//! | `stale_incarnation`, `finished`                         | `FAILED_PRECONDITION` |
+//! | `sequence_gap`                                          | `OUT_OF_RANGE`        |
+//! | `wrong_role`                                            | `PERMISSION_DENIED`   |
+//!
+//! A refused ingest message ends that actor's stream only; what was acknowledged before it stays
+//! stored. A stream the server ends because it is shutting down gets `UNAVAILABLE` without a
+//! reason (try again later), or `FAILED_PRECONDITION`/`finished` once the run is over.
+
+mod client;
+mod server;
+
+use hac_learner::RejectReason;
+use tokio::sync::watch;
+use tonic::Status;
+
+pub use client::{ConnectError, GrpcLink, GrpcLinkOptions};
+pub use server::{LearnerGrpc, ServerOptions, serve};
+
+/// The status metadata key naming the [`RejectReason`] of a refusal.
+pub const REJECT_REASON_KEY: &str = "hac-reject-reason";
+
+/// The [`RejectReason`] a status carries in its [`REJECT_REASON_KEY`] metadata, if any (transport
+/// failures carry none).
+pub fn reject_reason(status: &Status) -> Option<RejectReason> {
+    let value = status.metadata().get(REJECT_REASON_KEY)?.to_str().ok()?;
+    RejectReason::ALL.into_iter().find(|r| r.name() == value)
+}
+
+/// Completes once `flag` is set (or its sender is gone). Returns nothing, so that no borrow of
+/// the channel outlives the wait (a `select!` holds its branches' outputs across the handler).
+async fn until_set(flag: &mut watch::Receiver<bool>) {
+    let _ = flag.wait_for(|&set| set).await;
+}

@@ -1,0 +1,748 @@
+//! The learner service over loopback gRPC: precise refusals that end only the offending stream,
+//! exactly-once storage across resends, the weights watch, and a [`GrpcLink`] that survives a
+//! learner restart.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use hac_agent::RunConfig;
+use hac_core::Batch;
+use hac_learner::{Learner, LearnerOptions, RejectReason};
+use hac_proto::{
+    ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb,
+};
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, reject_reason, serve};
+use hac_transport::{ActorLink, LinkError};
+use prost::Message as _;
+use prost::bytes::BufMut as _;
+use tokio::sync::{mpsc, oneshot};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::codegen::http::uri::PathAndQuery;
+use tonic::transport::Channel;
+use tonic::{Code, Status, Streaming};
+
+const WAIT: Duration = Duration::from_secs(20);
+
+fn run_config() -> RunConfig {
+    let mut agent = hac_envs::make("mountain-car").unwrap().default_config(2);
+    agent.test_episodes = 2;
+    RunConfig {
+        env: "mountain-car".into(),
+        levels: 2,
+        seed: 0,
+        episodes: 1000,
+        stop_at: None,
+        replay_shards: 2,
+        agent,
+        tabular: None,
+    }
+}
+
+fn start_learner(seed: u64) -> Arc<Learner> {
+    let run = RunConfig {
+        seed,
+        ..run_config()
+    };
+    let options = LearnerOptions::for_run(&run);
+    Arc::new(Learner::start(run, options).unwrap())
+}
+
+/// A server on its own task; dropping the handle does not stop it, [`Server::stop`] does.
+struct Server {
+    addr: SocketAddr,
+    stop: oneshot::Sender<()>,
+    done: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+}
+
+impl Server {
+    async fn start(learner: Arc<Learner>, addr: SocketAddr, options: ServerOptions) -> Self {
+        let listener = tokio::net::TcpListener::bind(addr).await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (stop, stopped) = oneshot::channel::<()>();
+        let done = tokio::spawn(serve(learner, listener, options, async {
+            let _ = stopped.await;
+        }));
+        Self { addr, stop, done }
+    }
+
+    async fn stop(self) {
+        let _ = self.stop.send(());
+        tokio::time::timeout(WAIT, self.done)
+            .await
+            .expect("the server drains in time")
+            .unwrap()
+            .unwrap();
+    }
+
+    fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    async fn channel(&self) -> Channel {
+        Channel::from_shared(self.url())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    }
+
+    async fn client(&self) -> pb::learner_client::LearnerClient<Channel> {
+        pb::learner_client::LearnerClient::new(self.channel().await)
+            .max_decoding_message_size(64 << 20)
+    }
+}
+
+fn registration(actor_id: &str, role: ActorRole) -> pb::RegisterRequest {
+    Registration {
+        role,
+        ..registration_of(actor_id)
+    }
+    .into()
+}
+
+fn registration_of(actor_id: &str) -> Registration {
+    Registration {
+        actor_id: actor_id.into(),
+        role: ActorRole::Trainer,
+        hostname: "test".into(),
+        transports: vec!["grpc".into()],
+    }
+}
+
+async fn register(
+    client: &mut pb::learner_client::LearnerClient<Channel>,
+    actor_id: &str,
+    role: ActorRole,
+) -> u64 {
+    client
+        .register(registration(actor_id, role))
+        .await
+        .unwrap()
+        .into_inner()
+        .incarnation
+}
+
+/// A valid batch of `len` transitions for `level`.
+fn batch_item(learner: &Learner, level: usize, len: usize) -> IngestItem {
+    let mut batch = Batch::zeros(learner.dims()[level], len);
+    batch.rewards.fill(-1.0);
+    IngestItem::Batch(DecodedBatch {
+        level,
+        weights_version: 1,
+        batch,
+    })
+}
+
+fn request(actor_id: &str, incarnation: u64, sequence: u64, item: IngestItem) -> pb::IngestRequest {
+    IngestMessage {
+        actor_id: actor_id.into(),
+        incarnation,
+        sequence,
+        item,
+    }
+    .into()
+}
+
+fn episode() -> IngestItem {
+    IngestItem::Episode {
+        env_steps: 10,
+        success: false,
+        weights_version: 1,
+    }
+}
+
+/// An open ingest stream: requests in, acks out.
+struct Stream {
+    requests: mpsc::Sender<pb::IngestRequest>,
+    acks: Streaming<pb::IngestAck>,
+}
+
+impl Stream {
+    async fn open(client: &mut pb::learner_client::LearnerClient<Channel>) -> Self {
+        let (requests, rx) = mpsc::channel(16);
+        let acks = client
+            .ingest(ReceiverStream::new(rx))
+            .await
+            .unwrap()
+            .into_inner();
+        Self { requests, acks }
+    }
+
+    async fn send(&self, msg: pb::IngestRequest) {
+        self.requests.send(msg).await.unwrap();
+    }
+
+    /// Waits for an ack covering `sequence`.
+    async fn acked(&mut self, sequence: u64) -> pb::IngestAck {
+        loop {
+            let ack = tokio::time::timeout(WAIT, self.acks.message())
+                .await
+                .expect("an ack in time")
+                .expect("a healthy stream")
+                .expect("an open stream");
+            if ack.acked_through >= sequence {
+                return ack;
+            }
+        }
+    }
+
+    /// Waits for the stream to end with an error status (acks before it are skipped).
+    async fn refused(&mut self) -> Status {
+        refusal(&mut self.acks).await
+    }
+}
+
+async fn refusal<T: Send + 'static>(stream: &mut Streaming<T>) -> Status {
+    loop {
+        match tokio::time::timeout(WAIT, stream.message())
+            .await
+            .expect("an answer in time")
+        {
+            Ok(Some(_)) => {}
+            Ok(None) => panic!("the stream ended without a status"),
+            Err(status) => return status,
+        }
+    }
+}
+
+fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
+    learner
+        .status()
+        .rejected
+        .iter()
+        .find(|(r, _)| *r == reason)
+        .map_or(0, |&(_, n)| n)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn registration_hands_out_fresh_incarnations() {
+    let learner = start_learner(0);
+    let server = Server::start(
+        learner.clone(),
+        ([127, 0, 0, 1], 0).into(),
+        ServerOptions::default(),
+    )
+    .await;
+    let mut client = server.client().await;
+
+    let a = client
+        .register(registration("a", ActorRole::Trainer))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(a.incarnation, 1);
+    assert_eq!(a.levels.len(), 2);
+    assert_eq!(a.run_config_toml, learner.run_config().to_toml());
+    assert_eq!(a.run_config_digest, learner.status().run_config_digest);
+    assert_eq!(register(&mut client, "b", ActorRole::Evaluator).await, 2);
+    assert_eq!(register(&mut client, "a", ActorRole::Trainer).await, 3);
+
+    let status = client
+        .register(registration("", ActorRole::Trainer))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(reject_reason(&status), Some(RejectReason::InvalidBatch));
+    assert!(
+        status.message().contains("register_request.actor_id"),
+        "{status}"
+    );
+
+    learner.finish("test over");
+    let status = client
+        .register(registration("c", ActorRole::Trainer))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::FailedPrecondition);
+    assert_eq!(reject_reason(&status), Some(RejectReason::Finished));
+    server.stop().await;
+}
+
+/// Bytes as they are: for sending what no protobuf encoder would.
+#[derive(Debug, Clone, Copy)]
+struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = pb::IngestAck;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> Self::Encoder {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn encode(&mut self, item: Vec<u8>, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        dst.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = pb::IngestAck;
+    type Error = Status;
+
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<pb::IngestAck>, Status> {
+        pb::IngestAck::decode(src)
+            .map(Some)
+            .map_err(|e| Status::internal(e.to_string()))
+    }
+}
+
+/// Kinds of bad input, each sent by an actor of its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Bad {
+    WrongDimensions,
+    NotFinite,
+    LevelOutOfRange,
+    UnknownActor,
+    StaleIncarnation,
+    SequenceGap,
+    EvaluatorTransitions,
+    Oversized,
+    Garbage,
+}
+
+impl Bad {
+    const ALL: [Bad; 9] = [
+        Bad::WrongDimensions,
+        Bad::NotFinite,
+        Bad::LevelOutOfRange,
+        Bad::UnknownActor,
+        Bad::StaleIncarnation,
+        Bad::SequenceGap,
+        Bad::EvaluatorTransitions,
+        Bad::Oversized,
+        Bad::Garbage,
+    ];
+
+    /// The status code and counted reason the learner must answer with.
+    fn expected(self) -> (Code, RejectReason) {
+        match self {
+            Bad::WrongDimensions => (Code::InvalidArgument, RejectReason::InvalidBatch),
+            Bad::NotFinite => (Code::InvalidArgument, RejectReason::NotFinite),
+            Bad::LevelOutOfRange => (Code::InvalidArgument, RejectReason::LevelOutOfRange),
+            Bad::UnknownActor => (Code::NotFound, RejectReason::UnknownActor),
+            Bad::StaleIncarnation => (Code::FailedPrecondition, RejectReason::StaleIncarnation),
+            Bad::SequenceGap => (Code::OutOfRange, RejectReason::SequenceGap),
+            Bad::EvaluatorTransitions => (Code::PermissionDenied, RejectReason::WrongRole),
+            Bad::Oversized => (Code::ResourceExhausted, RejectReason::Oversized),
+            Bad::Garbage => (Code::InvalidArgument, RejectReason::Malformed),
+        }
+    }
+
+    /// Whether the actor first sends a valid message (acknowledged, and stored whatever follows).
+    fn sends_a_good_message_first(self) -> bool {
+        !matches!(self, Bad::EvaluatorTransitions | Bad::Garbage)
+    }
+}
+
+/// Sends `bad` as actor `actor` on a stream of its own; the status that ends the stream.
+async fn provoke(
+    server: &Server,
+    client: &mut pb::learner_client::LearnerClient<Channel>,
+    learner: &Learner,
+    bad: Bad,
+    actor: &str,
+) -> Status {
+    if bad == Bad::Garbage {
+        // Not a protobuf message at all: field 31 with the invalid wire type 7, and so on.
+        let mut grpc = tonic::client::Grpc::new(server.channel().await);
+        grpc.ready().await.unwrap();
+        let mut acks = grpc
+            .streaming(
+                tonic::Request::new(tokio_stream::iter([vec![0xff; 32]])),
+                PathAndQuery::from_static("/hac.v1.Learner/Ingest"),
+                RawCodec,
+            )
+            .await
+            .unwrap()
+            .into_inner();
+        return refusal(&mut acks).await;
+    }
+    let role = if bad == Bad::EvaluatorTransitions {
+        ActorRole::Evaluator
+    } else {
+        ActorRole::Trainer
+    };
+    let incarnation = register(client, actor, role).await;
+    let mut stream = Stream::open(client).await;
+    let mut sequence = 1;
+    if bad.sends_a_good_message_first() {
+        stream
+            .send(request(actor, incarnation, 1, batch_item(learner, 1, 5)))
+            .await;
+        stream.acked(1).await;
+        sequence = 2;
+    }
+    let mut msg = request(actor, incarnation, sequence, batch_item(learner, 0, 5));
+    let Some(pb::ingest_request::Item::Batch(batch)) = msg.item.as_mut() else {
+        unreachable!("a batch item");
+    };
+    match bad {
+        Bad::WrongDimensions => {
+            batch.states.pop();
+        }
+        Bad::NotFinite => batch.rewards[3] = f32::NAN,
+        Bad::LevelOutOfRange => batch.level = 7,
+        // Above the server's 1 MiB limit.
+        Bad::Oversized => batch.states = vec![0.0; 300_000],
+        Bad::UnknownActor => msg.actor_id = "ghost".into(),
+        Bad::StaleIncarnation => {
+            // The message keeps the superseded incarnation.
+            let newer = register(client, actor, role).await;
+            assert!(newer > incarnation);
+        }
+        Bad::SequenceGap => msg.sequence = 5,
+        Bad::EvaluatorTransitions | Bad::Garbage => {}
+    }
+    stream.send(msg).await;
+    stream.refused().await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_ends_only_its_own_stream_with_a_precise_status() {
+    let learner = start_learner(0);
+    let options = ServerOptions {
+        max_message_bytes: 1 << 20,
+        ..ServerOptions::default()
+    };
+    let server = Server::start(learner.clone(), localhost(), options).await;
+    let mut client = server.client().await;
+
+    // A well-behaved actor streams throughout.
+    let good = register(&mut client, "good", ActorRole::Trainer).await;
+    let mut good_stream = Stream::open(&mut client).await;
+    let mut good_sequence = 1;
+    good_stream
+        .send(request("good", good, 1, batch_item(&learner, 0, 10)))
+        .await;
+    good_stream.acked(1).await;
+
+    for (i, bad) in Bad::ALL.into_iter().enumerate() {
+        let (code, reason) = bad.expected();
+        let before = rejected(&learner, reason);
+        let status = provoke(&server, &mut client, &learner, bad, &format!("bad-{i}")).await;
+        assert_eq!(status.code(), code, "{bad:?}: {status}");
+        assert_eq!(reject_reason(&status), Some(reason), "{bad:?}: {status}");
+        assert_eq!(
+            rejected(&learner, reason),
+            before + 1,
+            "{bad:?}: counted once"
+        );
+
+        good_sequence += 1;
+        good_stream
+            .send(request(
+                "good",
+                good,
+                good_sequence,
+                batch_item(&learner, 0, 10),
+            ))
+            .await;
+        let ack = good_stream.acked(good_sequence).await;
+        assert_eq!(ack.acked_through, good_sequence, "after {bad:?}");
+    }
+
+    // Every acknowledged message stayed stored: the good actor's, and each bad actor's first.
+    let firsts = Bad::ALL
+        .iter()
+        .filter(|b| b.sends_a_good_message_first())
+        .count() as u64;
+    let status = learner.status();
+    assert_eq!(status.transitions, 10 * good_sequence + 5 * firsts);
+    let total: u64 = status.rejected.iter().map(|&(_, n)| n).sum();
+    assert_eq!(total, Bad::ALL.len() as u64);
+    learner.finish("test over");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn resends_of_acknowledged_messages_are_acknowledged_as_duplicates() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let mut client = server.client().await;
+    let incarnation = register(&mut client, "a", ActorRole::Trainer).await;
+    let message = |sequence| request("a", incarnation, sequence, batch_item(&learner, 0, 4));
+
+    let mut first = Stream::open(&mut client).await;
+    for sequence in 1..=3 {
+        first.send(message(sequence)).await;
+    }
+    first.acked(3).await;
+    drop(first);
+
+    // As after a reconnect: everything again from 1, then something new.
+    let mut second = Stream::open(&mut client).await;
+    for sequence in 1..=4 {
+        second.send(message(sequence)).await;
+    }
+    assert_eq!(second.acked(4).await.acked_through, 4);
+
+    let status = learner.status();
+    assert_eq!((status.batches, status.transitions), (4, 16));
+    assert_eq!(status.duplicates, 3);
+    assert_eq!(status.messages, status.batches + status.duplicates);
+    assert_eq!(status.actors[0].duplicates, 3);
+    learner.finish("test over");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_weights_watch_delivers_every_new_version_to_every_subscriber() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let mut client = server.client().await;
+    let first = learner.weights().latest().unwrap().version;
+    let incarnation = register(&mut client, "a", ActorRole::Trainer).await;
+
+    let watch = |min_version| pb::WatchWeightsRequest {
+        actor_id: "a".into(),
+        incarnation,
+        min_version,
+    };
+    let mut watchers = Vec::new();
+    for _ in 0..3 {
+        let mut stream = client.watch_weights(watch(0)).await.unwrap().into_inner();
+        let w = next_weights(&mut stream).await;
+        assert_eq!(w.version, first, "the current version at once");
+        assert!(!w.run_finished);
+        watchers.push(stream);
+    }
+    // Asks for something newer than there is: waits for it.
+    let mut later = client
+        .watch_weights(watch(first + 1))
+        .await
+        .unwrap()
+        .into_inner();
+
+    // Enough data for every level to train (a batch per level, then an episode): the learner
+    // publishes new weights once the updates owed are done.
+    let mut stream = Stream::open(&mut client).await;
+    let batch = learner.run_config().agent.batch_size;
+    let items = [
+        batch_item(&learner, 0, batch),
+        batch_item(&learner, 1, batch),
+        episode(),
+    ];
+    for (sequence, item) in (1..).zip(items) {
+        stream.send(request("a", incarnation, sequence, item)).await;
+    }
+    stream.acked(3).await;
+    let mut seen = Vec::new();
+    for watcher in watchers.iter_mut().chain([&mut later]) {
+        let w = next_weights(watcher).await;
+        assert!(w.version > first);
+        assert!(w.episodes <= 1);
+        seen.push(w.version);
+    }
+
+    // The final snapshot reaches everyone, and ends the streams.
+    learner.finish("test over");
+    let last = learner.weights().latest().unwrap().version;
+    for watcher in watchers.iter_mut().chain([&mut later]) {
+        let mut w = next_weights(watcher).await;
+        while !w.run_finished {
+            w = next_weights(watcher).await;
+        }
+        assert_eq!(w.version, last);
+        let end = tokio::time::timeout(WAIT, watcher.message()).await.unwrap();
+        assert!(matches!(end, Ok(None)), "{end:?}");
+    }
+    assert!(seen.iter().all(|&v| v < last));
+    server.stop().await;
+}
+
+async fn next_weights(stream: &mut Streaming<pb::Weights>) -> WeightsSnapshot {
+    let msg = tokio::time::timeout(WAIT, stream.message())
+        .await
+        .expect("weights in time")
+        .expect("a healthy stream")
+        .expect("an open stream");
+    WeightsSnapshot::try_from(msg).expect("valid weights")
+}
+
+fn localhost() -> SocketAddr {
+    ([127, 0, 0, 1], 0).into()
+}
+
+fn link_options() -> GrpcLinkOptions {
+    GrpcLinkOptions {
+        backoff_min: Duration::from_millis(20),
+        backoff_max: Duration::from_millis(200),
+        give_up_after: Duration::from_secs(30),
+        jitter_seed: 7,
+        ..GrpcLinkOptions::default()
+    }
+}
+
+/// A server runtime for tests that use the blocking [`GrpcLink`] from the test thread.
+fn server_runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+#[test]
+fn a_grpc_link_survives_a_learner_restart() {
+    let runtime = server_runtime();
+    let first = start_learner(0);
+    let server = runtime.block_on(Server::start(
+        first.clone(),
+        localhost(),
+        ServerOptions::default(),
+    ));
+    let addr = server.addr;
+    let mut link = GrpcLink::connect(&server.url(), link_options()).unwrap();
+    let registration = registration_of("a");
+    let admission = link.register(&registration).unwrap();
+    assert_eq!(admission.incarnation, 1);
+    for _ in 0..5 {
+        link.send(batch_item(&first, 0, 4)).unwrap();
+    }
+    link.flush(WAIT).unwrap();
+    assert_eq!(first.status().batches, 5);
+    assert!(link.learner_version() >= 1);
+    let first_weights = link
+        .weights()
+        .wait_for(WAIT, |_| true)
+        .expect("weights from the first learner");
+
+    // The learner goes away; the actor keeps sending into its window.
+    runtime.block_on(server.stop());
+    first.finish("restart");
+    for _ in 0..3 {
+        link.send(batch_item(&first, 1, 4)).unwrap();
+    }
+    assert_eq!(link.unacked(), 3);
+
+    // A new learner on the same address: the link reconnects, registers again and resends.
+    let second = start_learner(0);
+    second.register(registration_of("other")).unwrap();
+    let server = runtime.block_on(Server::start(
+        second.clone(),
+        addr,
+        ServerOptions::default(),
+    ));
+    link.flush(WAIT).unwrap();
+    let status = second.status();
+    assert_eq!(status.batches, 3);
+    let actor = status.actors.iter().find(|a| a.actor_id == "a").unwrap();
+    assert_eq!(link.incarnation(), actor.incarnation);
+    assert_eq!(
+        actor.incarnation, 2,
+        "the new learner's second registration"
+    );
+    assert_eq!(
+        first.status().batches,
+        5,
+        "nothing went to the old learner twice"
+    );
+
+    // The new learner's weights replace the old ones, whatever their versions.
+    second.finish("test over");
+    let last = link
+        .weights()
+        .wait_for(WAIT, |w| w.run_finished)
+        .expect("the new learner's final weights");
+    assert_eq!(last.version, second.weights().latest().unwrap().version);
+    assert!(!first_weights.run_finished);
+    link.send(batch_item(&second, 0, 4)).unwrap();
+    assert!(matches!(link.flush(WAIT), Err(LinkError::Finished)));
+    drop(link);
+    runtime.block_on(server.stop());
+}
+
+#[test]
+fn a_grpc_link_blocks_while_its_window_is_full() {
+    let runtime = server_runtime();
+    let learner = start_learner(0);
+    let server = runtime.block_on(Server::start(
+        learner.clone(),
+        localhost(),
+        ServerOptions::default(),
+    ));
+    let addr = server.addr;
+    let options = GrpcLinkOptions {
+        window: 2,
+        ..link_options()
+    };
+    let mut link = GrpcLink::connect(&server.url(), options).unwrap();
+    link.register(&registration_of("a")).unwrap();
+
+    // With the learner away nothing is acknowledged: two sends fit the window, the third waits.
+    runtime.block_on(server.stop());
+    link.send(batch_item(&learner, 0, 4)).unwrap();
+    link.send(batch_item(&learner, 0, 4)).unwrap();
+    let third = batch_item(&learner, 0, 4);
+    let (sent_tx, sent_rx) = std::sync::mpsc::channel();
+    let sender = std::thread::spawn(move || {
+        let result = link.send(third);
+        let _ = sent_tx.send(());
+        (link, result)
+    });
+    assert!(
+        sent_rx.recv_timeout(Duration::from_millis(500)).is_err(),
+        "the third send waits for room"
+    );
+
+    // The same learner back: the link reconnects and resends under the same incarnation.
+    let server = runtime.block_on(Server::start(
+        learner.clone(),
+        addr,
+        ServerOptions::default(),
+    ));
+    sent_rx.recv_timeout(WAIT).expect("room once acks arrive");
+    let (mut link, result) = sender.join().unwrap();
+    result.unwrap();
+    link.flush(WAIT).unwrap();
+    let status = learner.status();
+    assert_eq!((status.batches, status.duplicates), (3, 0));
+    assert_eq!(link.incarnation(), 1);
+    drop(link);
+    learner.finish("test over");
+    runtime.block_on(server.stop());
+}
+
+#[test]
+fn a_grpc_link_refuses_a_learner_running_another_config() {
+    let runtime = server_runtime();
+    let first = start_learner(0);
+    let server = runtime.block_on(Server::start(
+        first.clone(),
+        localhost(),
+        ServerOptions::default(),
+    ));
+    let addr = server.addr;
+    let mut link = GrpcLink::connect(&server.url(), link_options()).unwrap();
+    link.register(&registration_of("a")).unwrap();
+    runtime.block_on(server.stop());
+    first.finish("restart");
+
+    let other = start_learner(1);
+    let server = runtime.block_on(Server::start(other.clone(), addr, ServerOptions::default()));
+    link.send(batch_item(&other, 0, 4)).unwrap();
+    match link.flush(WAIT) {
+        Err(LinkError::Refused(message)) => {
+            assert!(message.contains("different config"), "{message}")
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    assert_eq!(other.status().batches, 0);
+    drop(link);
+    other.finish("test over");
+    runtime.block_on(server.stop());
+}

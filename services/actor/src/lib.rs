@@ -1,0 +1,167 @@
+//! The actor daemon: connects to a learner service over gRPC, registers, and runs the actor loop
+//! ([`hac_actor::run_actor`]) as a trainer (rollouts streamed as transitions) or an evaluator
+//! (greedy test rounds reported to the learning curve).
+//!
+//! [`ActorArgs`] and [`run`] are shared by the `hac-actor` binary and `hac actor`. The actor exits
+//! 0 when the learner says the run is finished, after `--max-episodes`, or after SIGINT/SIGTERM
+//! (checked between episodes; unacknowledged messages get `--flush-timeout` to reach the
+//! learner). A second signal exits at once.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use hac_actor::{ActorOptions, run_actor};
+use hac_proto::ActorRole;
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
+use hac_transport::{ActorLink, LinkError};
+
+/// What the actor does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Role {
+    /// Training episodes with the behaviour policy, streamed to the learner.
+    Trainer,
+    /// Greedy test rounds of the newest weights, reported to the learning curve.
+    Evaluator,
+}
+
+/// The actor daemon's flags (also `hac actor`'s).
+#[derive(Debug, clap::Args)]
+pub struct ActorArgs {
+    /// The learner service, as `http://host:port`.
+    #[arg(long, env = "HAC_LEARNER", default_value = "http://127.0.0.1:50051")]
+    pub learner: String,
+    /// This actor's name, unique among live actors [default: <hostname>-<pid>].
+    #[arg(long, env = "HAC_ACTOR_ID")]
+    pub id: Option<String>,
+    /// What the actor does.
+    #[arg(long, value_enum, env = "HAC_ACTOR_ROLE", default_value_t = Role::Trainer)]
+    pub role: Role,
+    /// Trainers: run a greedy test round after every N training episodes and report it.
+    /// Evaluators: evaluate whenever the learner has trained N more episodes [default: trainers
+    /// never; evaluators the run's exploration_episodes].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    pub eval_every: Option<u64>,
+    /// Trainers: stop after N training episodes [default: when the run finishes].
+    #[arg(long, value_name = "N")]
+    pub max_episodes: Option<u64>,
+    /// Transitions per batch sent (capped by the learner's limit).
+    #[arg(long, value_name = "N", default_value_t = 1024,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub batch_transitions: u64,
+    /// Most messages sent and not yet acknowledged by the learner; sending blocks beyond it
+    /// (the learner's backpressure).
+    #[arg(long, value_name = "N", default_value_t = 256,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub window: u64,
+    /// Trainers: before each episode, wait for the updates this actor's episodes earned (the
+    /// paper's schedule exactly with a single trainer; slower with several).
+    #[arg(long)]
+    pub lockstep: bool,
+    /// Give up if no usable weights arrive for this many seconds [default: wait as long as it
+    /// takes].
+    #[arg(long, value_name = "SECS", value_parser = seconds)]
+    pub weights_timeout: Option<Duration>,
+    /// Give up once the learner has not answered for this many seconds (reconnects back off
+    /// exponentially up to 5 s meanwhile).
+    #[arg(long, value_name = "SECS", default_value = "300", value_parser = seconds)]
+    pub give_up_after: Duration,
+    /// Seconds to wait, after an interrupt, for the learner to acknowledge what was sent.
+    #[arg(long, value_name = "SECS", default_value = "10", value_parser = seconds)]
+    pub flush_timeout: Duration,
+}
+
+/// A flag value in seconds (fractions allowed).
+fn seconds(text: &str) -> Result<Duration, String> {
+    let secs: f64 = text
+        .parse()
+        .map_err(|e| format!("`{text}` is not a number of seconds: {e}"))?;
+    Duration::try_from_secs_f64(secs).map_err(|e| format!("`{text}` seconds: {e}"))
+}
+
+/// Runs one actor until the run finishes, its own limit, or a signal; see the crate docs.
+pub fn run(args: ActorArgs) -> Result<()> {
+    let hostname = hostname();
+    let actor_id = args
+        .id
+        .clone()
+        .unwrap_or_else(|| format!("{hostname}-{}", std::process::id()));
+    if actor_id.trim().is_empty() {
+        bail!("invalid value for --id: the actor id must not be empty");
+    }
+    let options = ActorOptions {
+        actor_id: actor_id.clone(),
+        role: match args.role {
+            Role::Trainer => ActorRole::Trainer,
+            Role::Evaluator => ActorRole::Evaluator,
+        },
+        hostname,
+        transports: vec!["grpc".into()],
+        lockstep: args.lockstep,
+        eval_every_episodes: args.eval_every,
+        max_episodes: args.max_episodes,
+        weights_timeout: args.weights_timeout,
+        batch_transitions: usize::try_from(args.batch_transitions)
+            .context("invalid value for --batch-transitions")?,
+    };
+    let link_options = GrpcLinkOptions {
+        window: usize::try_from(args.window).context("invalid value for --window")?,
+        give_up_after: args.give_up_after,
+        ..GrpcLinkOptions::default()
+    };
+    let interrupt = interrupt_on_signals()?;
+    let mut link =
+        GrpcLink::connect(&args.learner, link_options).context("invalid value for --learner")?;
+    tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, "actor starting");
+    let summary = run_actor(&mut link, &options, &interrupt, |e| {
+        tracing::info!(
+            weights_version = e.weights_version,
+            trained_episodes = e.trained_episodes,
+            success = e.success_rate,
+            "evaluation reported"
+        );
+    })
+    .with_context(|| format!("actor {actor_id}"))?;
+    if !summary.run_finished {
+        match link.flush(args.flush_timeout) {
+            Ok(()) | Err(LinkError::Finished) => {}
+            Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
+        }
+    }
+    tracing::info!(
+        actor = %actor_id,
+        incarnation = summary.incarnation,
+        episodes = summary.episodes,
+        env_steps = summary.env_steps,
+        evaluations = summary.evaluations,
+        weights_version = summary.weights_version,
+        run_finished = summary.run_finished,
+        interrupted = interrupt.load(Ordering::Relaxed),
+        "actor stopped"
+    );
+    Ok(())
+}
+
+/// This host's name as the kernel knows it (no extra dependency), or `actor` if unreadable.
+fn hostname() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|name| name.trim().to_string())
+        .filter(|name| !name.is_empty())
+        .unwrap_or_else(|| "actor".into())
+}
+
+/// A flag that SIGINT/SIGTERM set so the actor stops between episodes; a second signal while
+/// the flag is set exits at once.
+fn interrupt_on_signals() -> Result<Arc<AtomicBool>> {
+    let flag = Arc::new(AtomicBool::new(false));
+    for &signal in signal_hook::consts::TERM_SIGNALS {
+        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))
+            .context("installing signal handlers")?;
+        signal_hook::flag::register(signal, Arc::clone(&flag))
+            .context("installing signal handlers")?;
+    }
+    Ok(flag)
+}

@@ -1,0 +1,277 @@
+//! The learner daemon: one [`Learner`] served over gRPC to actors on any host, until the run
+//! finishes or a signal stops it; then the trained agent is saved to a run directory.
+//!
+//! - [`LearnerArgs`] and [`run`]: the `hac-learner` binary and `hac learner` share them.
+//! - [`config`]: the run configuration's resolution (defaults, TOML file, `HAC_*` variables,
+//!   flags), the same source as `hac train`'s.
+//! - `run_dir`: what the learner writes (`config.toml`, `curve.csv` as evaluations arrive, and at
+//!   the end `weights/level<i>.safetensors` and `summary.json`).
+//!
+//! Life of a run: validate the config, start the learner, bind `--listen` and print
+//! `listening on <addr>` (one line on stdout, for scripts), serve. When the run finishes by itself
+//! (episode budget or `stop_at`), keep serving for `--grace-period` so actors receive the final
+//! weights; on SIGINT/SIGTERM, finish the run at once. Then stop accepting, end open streams,
+//! drain connections (at most `--drain-timeout`), save, exit 0. A second signal exits at once.
+
+// The same config resolution as `hac train`, so that every entry point resolves a run identically.
+pub use hac_run::config;
+mod run_dir;
+
+use std::io::Write as _;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use hac_agent::RunConfig;
+use hac_learner::{Learner, LearnerOptions};
+use hac_transport::grpc::{ServerOptions, serve};
+use tokio::net::TcpListener;
+use tokio::signal::unix::{Signal, SignalKind, signal};
+use tokio::sync::watch;
+
+use crate::run_dir::RunDir;
+
+/// The learner daemon's flags (also `hac learner`'s).
+#[derive(Debug, clap::Args)]
+pub struct LearnerArgs {
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car [default: pendulum].
+    #[arg(long, env = "HAC_ENV")]
+    pub env: Option<String>,
+    /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].
+    #[arg(long, env = "HAC_LEVELS")]
+    pub levels: Option<usize>,
+    /// Seed of every random stream; actors get seeds derived from it [default: 0].
+    #[arg(long, env = "HAC_SEED")]
+    pub seed: Option<u64>,
+    /// Training episodes in total, over all actors [default: 1000].
+    #[arg(long, env = "HAC_EPISODES")]
+    pub episodes: Option<u64>,
+    /// Finish early once an evaluation reaches this success rate (e.g. 0.9).
+    #[arg(long, env = "HAC_STOP_AT")]
+    pub stop_at: Option<f32>,
+    /// Replay shards per level [default: 1].
+    #[arg(long, env = "HAC_REPLAY_SHARDS")]
+    pub replay_shards: Option<usize>,
+    /// TOML config file (top-level keys as these flags, hyperparameters under [agent]).
+    #[arg(long, env = "HAC_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Override one agent hyperparameter, VALUE in TOML syntax (repeatable), e.g.
+    /// `--set horizon=20`. Also read from HAC_AGENT_<KEY>.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Print the resolved configuration as TOML and exit.
+    #[arg(long)]
+    pub print_config: bool,
+    /// Address to serve actors on; port 0 picks a free port. Once bound, the address is printed
+    /// on stdout as one line `listening on <addr>`.
+    #[arg(long, env = "HAC_LISTEN", default_value = "127.0.0.1:50051")]
+    pub listen: SocketAddr,
+    /// Run directory: config.toml, curve.csv (a row per evaluation), and at the end
+    /// weights/level<i>.safetensors and summary.json [default: runs/<env>-<levels>l-seed<seed>].
+    #[arg(long, env = "HAC_OUT")]
+    pub out: Option<PathBuf>,
+    /// Replace a run already in the run directory.
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Largest gRPC message accepted (larger ones are refused as oversized) or sent, in bytes.
+    #[arg(long, env = "HAC_MAX_MESSAGE_BYTES", default_value_t = 64 << 20,
+          value_parser = clap::value_parser!(u64).range(1024..=(1 << 31)))]
+    pub max_message_bytes: u64,
+    /// Largest transition batch accepted, in transitions (actors learn it at registration)
+    /// [default: 4096].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=(1 << 20)))]
+    pub max_batch_transitions: Option<u64>,
+    /// Publish weights after every level did this many more updates (besides whenever every
+    /// level has caught up with the episodes ingested) [default: the run's updates_per_episode].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub publish_every_updates: Option<u64>,
+    /// Actors refuse to act on weights more than this many versions behind the newest
+    /// [default: 16].
+    #[arg(long)]
+    pub max_weights_lag: Option<u64>,
+    /// Seconds to keep serving after the run finishes by itself, so that every actor receives
+    /// the final weights and stops.
+    #[arg(long, value_name = "SECS", default_value = "2", value_parser = seconds)]
+    pub grace_period: Duration,
+    /// Seconds to wait at shutdown for actors' connections to close.
+    #[arg(long, value_name = "SECS", default_value = "5", value_parser = seconds)]
+    pub drain_timeout: Duration,
+}
+
+/// A flag value in seconds (fractions allowed).
+fn seconds(text: &str) -> Result<Duration, String> {
+    let secs: f64 = text
+        .parse()
+        .map_err(|e| format!("`{text}` is not a number of seconds: {e}"))?;
+    Duration::try_from_secs_f64(secs).map_err(|e| format!("`{text}` seconds: {e}"))
+}
+
+impl LearnerArgs {
+    fn resolve(&self) -> Result<RunConfig> {
+        config::resolve(
+            self.config.as_deref(),
+            config::Overrides {
+                env: self.env.clone(),
+                levels: self.levels,
+                seed: self.seed,
+                episodes: self.episodes,
+                stop_at: self.stop_at,
+                replay_shards: self.replay_shards,
+                set: self.set.clone(),
+            },
+        )
+    }
+
+    fn learner_options(&self, run: &RunConfig) -> Result<LearnerOptions> {
+        let mut options = LearnerOptions::for_run(run);
+        if let Some(n) = self.max_batch_transitions {
+            options.max_batch_transitions =
+                usize::try_from(n).context("invalid value for --max-batch-transitions")?;
+        }
+        if let Some(n) = self.publish_every_updates {
+            options.publish_every_updates = n;
+        }
+        if let Some(n) = self.max_weights_lag {
+            options.max_weights_lag = n;
+        }
+        Ok(options)
+    }
+
+    fn server_options(&self) -> Result<ServerOptions> {
+        Ok(ServerOptions {
+            max_message_bytes: usize::try_from(self.max_message_bytes)
+                .context("invalid value for --max-message-bytes")?,
+            drain_timeout: self.drain_timeout,
+        })
+    }
+}
+
+/// Runs the learner daemon until the run finishes or a signal stops it; see the crate docs.
+pub fn run(args: LearnerArgs) -> Result<()> {
+    let run = args.resolve()?;
+    if args.print_config {
+        print!("{}", run.to_toml());
+        return Ok(());
+    }
+    let options = args.learner_options(&run)?;
+    let server_options = args.server_options()?;
+    let out = args.out.clone().unwrap_or_else(|| {
+        PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
+    });
+    let mut dir = RunDir::create(&out, &run, args.overwrite)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("hac-learner-io")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let learner = Arc::new(Learner::start(run, options)?);
+    let started = Instant::now();
+    let served = runtime.block_on(serve_run(learner.clone(), &args, server_options, &mut dir));
+    // Ends every task still holding the learner (connections that outlived the drain).
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    served?;
+    let learner = Arc::into_inner(learner).context("the learner is still in use after shutdown")?;
+    let finished = learner.shutdown();
+    dir.record(&finished.curve)?;
+    let summary = dir.finish(&finished, started.elapsed())?;
+    tracing::info!(
+        episodes = finished.status.episodes,
+        transitions = finished.status.transitions,
+        evaluations = summary.rounds,
+        final_success = summary.final_success,
+        out = %out.display(),
+        "run saved"
+    );
+    Ok(())
+}
+
+/// SIGINT and SIGTERM, installed before the port is bound so that neither kills the process
+/// uncleanly once it is serving.
+struct Signals {
+    interrupt: Signal,
+    terminate: Signal,
+}
+
+impl Signals {
+    fn install() -> Result<Self> {
+        Ok(Self {
+            interrupt: signal(SignalKind::interrupt()).context("installing signal handlers")?,
+            terminate: signal(SignalKind::terminate()).context("installing signal handlers")?,
+        })
+    }
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.interrupt.recv() => {}
+            _ = self.terminate.recv() => {}
+        }
+    }
+}
+
+/// Serves until the run is over (plus the grace period) or a signal; then shuts the server down.
+async fn serve_run(
+    learner: Arc<Learner>,
+    args: &LearnerArgs,
+    options: ServerOptions,
+    dir: &mut RunDir,
+) -> Result<()> {
+    let mut signals = Signals::install()?;
+    let listener = TcpListener::bind(args.listen)
+        .await
+        .with_context(|| format!("binding --listen {}", args.listen))?;
+    let addr = listener.local_addr().context("reading the bound address")?;
+    {
+        let mut stdout = std::io::stdout().lock();
+        writeln!(stdout, "listening on {addr}")?;
+        stdout.flush()?;
+    }
+    tracing::info!(%addr, run = %learner.status().run_config_digest, "learner service listening");
+
+    let (stop, mut stopped) = watch::channel(false);
+    let server = tokio::spawn(serve(learner.clone(), listener, options, async move {
+        // An error means the sender is gone: stop as well.
+        let _ = stopped.wait_for(|&stop| stop).await;
+    }));
+    let mut weights = learner.weights().subscribe();
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut grace_until: Option<tokio::time::Instant> = None;
+    loop {
+        let grace_over = async {
+            match grace_until {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            () = signals.recv() => {
+                tracing::info!("signal received: finishing the run (a second signal exits at once)");
+                learner.finish("interrupted");
+                break;
+            }
+            finished = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)),
+                if grace_until.is_none() =>
+            {
+                // An error: the learner's weights cell is gone, so is the run.
+                drop(finished);
+                tracing::info!(grace_period = ?args.grace_period, "run finished: serving the final weights");
+                grace_until = Some(tokio::time::Instant::now() + args.grace_period);
+            }
+            () = grace_over => break,
+            _ = tick.tick() => dir.record(&learner.curve())?,
+        }
+    }
+    tokio::spawn(async move {
+        signals.recv().await;
+        tracing::warn!("second signal: exiting at once");
+        std::process::exit(130);
+    });
+    stop.send_replace(true);
+    server
+        .await
+        .context("the server task failed")?
+        .context("serving actors")?;
+    dir.record(&learner.curve())
+}
