@@ -634,6 +634,15 @@ impl Learner {
         self.shared.curve.lock().points.clone()
     }
 
+    /// Publishes the current weights again as a new version and returns it (weights fan-out
+    /// benchmarks; a nudge for actors waiting on a version). Nothing after the run finished.
+    pub fn republish(&self) -> u64 {
+        if !self.is_finished() {
+            self.shared.publish(false);
+        }
+        self.shared.publisher.lock().version
+    }
+
     /// Ends the run now (interrupt, shutdown): publishes the final snapshot and stops trainers.
     pub fn finish(&self, why: &str) {
         self.shared.finish(why);

@@ -24,6 +24,9 @@ use serde::Serialize;
 pub enum Transport {
     /// Direct calls into the learner (the embedded run's path): the learner's own ceiling.
     InProcess,
+    /// tonic over loopback TCP: one bidirectional ingest stream per actor, `--window` batches in
+    /// flight each.
+    Grpc,
 }
 
 /// `hac bench ingest` settings.
@@ -97,6 +100,52 @@ pub fn percentiles(samples: &mut [u32]) -> (f64, f64) {
     (at(0.50), at(0.99))
 }
 
+/// Starts the bench learner.
+pub fn bench_learner(max_batch: usize) -> Result<Arc<Learner>> {
+    let run = bench_run()?;
+    let mut options = LearnerOptions::for_run(&run);
+    options.max_batch_transitions = options.max_batch_transitions.max(max_batch);
+    Ok(Arc::new(
+        Learner::start(run, options).context("starting the bench learner")?,
+    ))
+}
+
+/// `hac bench weights`: a new weights version reaching `watchers` gRPC weights streams.
+pub fn run_weights(watchers: usize, versions: u64, interval_ms: u64, json: bool) -> Result<()> {
+    if watchers == 0 || versions == 0 {
+        bail!("--actors and --versions must be at least 1");
+    }
+    let learner = bench_learner(1)?;
+    let r = crate::bench_grpc::fanout(
+        &learner,
+        watchers,
+        versions,
+        Duration::from_millis(interval_ms),
+    )?;
+    learner.finish("bench over");
+    if let Some(learner) = Arc::into_inner(learner) {
+        learner.shutdown();
+    }
+    if json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        println!("| watchers | versions | snapshot | delivered | delay p50 | delay p99 | max |");
+        println!("| --- | --- | --- | --- | --- | --- | --- |");
+        println!(
+            "| {} | {} | {} KiB | {} of {} | {:.0} us | {:.0} us | {:.0} us |",
+            r.watchers,
+            r.versions,
+            r.snapshot_bytes / 1024,
+            r.deliveries,
+            r.expected_deliveries,
+            r.delay_p50_us,
+            r.delay_p99_us,
+            r.delay_max_us
+        );
+    }
+    Ok(())
+}
+
 pub fn run_ingest(bench: &IngestBench) -> Result<()> {
     if bench.actors == 0 || bench.batch == 0 || bench.window == 0 {
         bail!("--actors, --batch and --window must be at least 1");
@@ -104,10 +153,7 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
     if !(bench.seconds.is_finite() && bench.seconds > 0.0) {
         bail!("--seconds must be a positive number");
     }
-    let run = bench_run()?;
-    let mut options = LearnerOptions::for_run(&run);
-    options.max_batch_transitions = options.max_batch_transitions.max(bench.batch);
-    let learner = Arc::new(Learner::start(run, options).context("starting the bench learner")?);
+    let learner = bench_learner(bench.batch)?;
     if !bench.json {
         eprintln!(
             "bench ingest: {:?}, {} actors, batches of {}, window {}, {} s",
@@ -116,6 +162,7 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
     }
     let report = match bench.transport {
         Transport::InProcess => in_process(bench, &learner)?,
+        Transport::Grpc => crate::bench_grpc::ingest(bench, &learner)?,
     };
     learner.finish("bench over");
     if let Some(learner) = Arc::into_inner(learner) {

@@ -13,6 +13,7 @@
 //! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
 mod bench;
+mod bench_grpc;
 mod env_cmd;
 mod experiment;
 mod render;
@@ -98,6 +99,22 @@ enum BenchCommand {
         /// Unacknowledged batches each sender keeps in flight (streaming transports).
         #[arg(long, default_value_t = 32)]
         window: usize,
+        /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Weights fan-out: the learner publishes new versions (pendulum, 2 levels) to many
+    /// gRPC weights watchers; prints the publication-to-receipt delay p50/p99.
+    Weights {
+        /// Connected watchers (actors).
+        #[arg(long, default_value_t = 32)]
+        actors: usize,
+        /// Versions published.
+        #[arg(long, default_value_t = 50)]
+        versions: u64,
+        /// Milliseconds between publications.
+        #[arg(long, default_value_t = 20)]
+        interval_ms: u64,
         /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
@@ -261,6 +278,12 @@ fn main() {
             json,
         }),
         Command::Render(args) => render::run(&args),
+        Command::Bench(BenchCommand::Weights {
+            actors,
+            versions,
+            interval_ms,
+            json,
+        }) => bench::run_weights(actors, versions, interval_ms, json),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
