@@ -1,5 +1,5 @@
-//! A distributed run with the real `hac` binary: a learner service, two trainer actors and an
-//! evaluator over loopback gRPC, to completion.
+//! A distributed run with the real `hac` binary: a learner service, three trainer actors and an
+//! evaluator over loopback gRPC, to completion, learning mountain-car from nothing.
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
@@ -89,7 +89,7 @@ fn all_logs(logs: &Path) -> String {
 }
 
 #[test]
-fn a_learner_two_trainers_and_an_evaluator_run_to_completion() {
+fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     let dir = scratch("run");
     let out = dir.join("out");
     let out_s = out.to_str().unwrap();
@@ -102,9 +102,9 @@ fn a_learner_two_trainers_and_an_evaluator_run_to_completion() {
             "--levels",
             "2",
             "--episodes",
-            "60",
+            "100",
             "--set",
-            "test_episodes=10",
+            "test_episodes=20",
             "--listen",
             "127.0.0.1:0",
             "--out",
@@ -130,10 +130,14 @@ fn a_learner_two_trainers_and_an_evaluator_run_to_completion() {
     let url = format!("http://{addr}");
 
     // The evaluator first: a learner with an evaluator waits for the last evaluation.
-    let actors: [(&str, &[&str]); 3] = [
+    let actors: [(&str, &[&str]); 4] = [
         ("evaluator", &["--role", "evaluator", "--eval-every", "20"]),
-        ("trainer-0", &["--role", "trainer"]),
-        ("trainer-1", &["--role", "trainer"]),
+        // Lockstep: no trainer runs ahead of the updates its own episodes earned, so this short
+        // run learns as the embedded one does (free-running actors act on staler weights and
+        // need more episodes; see docs/RESULTS.md).
+        ("trainer-0", &["--role", "trainer", "--lockstep"]),
+        ("trainer-1", &["--role", "trainer", "--lockstep"]),
+        ("trainer-2", &["--role", "trainer", "--lockstep"]),
     ];
     for (name, extra) in actors {
         let mut args = vec!["actor", "--learner", &url, "--id", name];
@@ -176,15 +180,22 @@ fn a_learner_two_trainers_and_an_evaluator_run_to_completion() {
         .parse()
         .unwrap();
     assert!(
-        last_episodes >= 60,
+        last_episodes >= 100,
         "the last evaluation covers the budget:\n{csv}"
     );
+    // Learned from nothing: untrained greedy agents never reach the flag (see the embedded
+    // mountain-car test); the best evaluation must.
+    let best = rows[1..]
+        .iter()
+        .map(|r| r.split(',').nth(3).unwrap().parse::<f32>().unwrap())
+        .fold(0.0, f32::max);
+    assert!(best >= 0.1, "best evaluation {best}:\n{csv}");
     let summary = std::fs::read_to_string(out.join("summary.json")).unwrap();
     assert!(summary.contains("\"episodes_ingested\""), "{summary}");
     let learner_log = std::fs::read_to_string(dir.join("learner.log")).unwrap();
     assert_eq!(
         learner_log.matches("actor registered").count(),
-        3,
+        4,
         "{learner_log}"
     );
     let _ = std::fs::remove_dir_all(&dir);

@@ -26,7 +26,17 @@ pub struct Summary {
     /// Training episodes ingested (all actors; may exceed the budget by a few).
     pub episodes_ingested: u64,
     pub env_steps: u64,
+    /// Ingest messages that reached the learner core, valid or not: `messages = batches +
+    /// episodes_ingested + duplicates + rejected`, counting the rejections other than
+    /// `malformed`, `oversized` and `unauthenticated` (those the transport refuses first).
+    pub messages: u64,
+    /// Transition batches stored.
+    pub batches: u64,
+    /// Transitions stored (counted at ingest).
     pub transitions: u64,
+    /// Transitions in the replay tables' insert counters (equal to `transitions`).
+    pub transitions_in_replay: u64,
+    /// Resends of stored messages, acknowledged and dropped.
     pub duplicates: u64,
     pub weights_version: u64,
     pub rounds: usize,
@@ -116,7 +126,10 @@ impl RunDir {
             episodes: last.map_or(0, |r| r.episodes),
             episodes_ingested: status.episodes,
             env_steps: status.env_steps,
+            messages: status.messages,
+            batches: status.batches,
             transitions: status.transitions,
+            transitions_in_replay: status.levels.iter().map(|l| l.transitions_inserted).sum(),
             duplicates: status.duplicates,
             weights_version: status.weights_version,
             rounds: curve.len(),
