@@ -299,6 +299,21 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             s.summary.env_steps += outcome.steps as u64;
             s.summary.successes += u64::from(outcome.success);
             policy = Some(p);
+            self.wait_acked()?;
+        }
+    }
+
+    /// Backpressure in whole episodes: the next episode starts only once the learner has
+    /// acknowledged this one. When training falls behind, the learner withholds acks and every
+    /// actor waits here, instead of piling up episodes played with ever staler weights.
+    fn wait_acked(&mut self) -> Result<(), ActorError> {
+        loop {
+            match self.link.flush(Duration::from_millis(200)) {
+                Ok(()) => return Ok(()),
+                Err(LinkError::TimedOut(_)) if !self.interrupted() => continue,
+                Err(LinkError::TimedOut(_)) => return Ok(()),
+                Err(e) => return Err(ActorError::Link(e)),
+            }
         }
     }
 

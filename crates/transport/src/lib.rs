@@ -34,6 +34,10 @@ pub enum LinkError {
     /// The link was shut down.
     #[error("the link is closed")]
     Closed,
+    /// [`ActorLink::flush`] ran out of time with this many messages unacknowledged; the link
+    /// itself is fine (the learner is withholding acks, or reconnecting).
+    #[error("{0} messages still unacknowledged")]
+    TimedOut(usize),
 }
 
 /// The actor's side of a connection to the learner. Implementations keep every sent item until
@@ -49,7 +53,7 @@ pub trait ActorLink: Send {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError>;
 
     /// Blocks until every item sent so far is acknowledged, or `timeout` passes
-    /// ([`LinkError::Unavailable`]).
+    /// ([`LinkError::TimedOut`]).
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError>;
 
     /// The latest weights the link has received, waitable.

@@ -132,12 +132,9 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     // The evaluator first: a learner with an evaluator waits for the last evaluation.
     let actors: [(&str, &[&str]); 4] = [
         ("evaluator", &["--role", "evaluator", "--eval-every", "20"]),
-        // Lockstep: no trainer runs ahead of the updates its own episodes earned, so this short
-        // run learns as the embedded one does (free-running actors act on staler weights and
-        // need more episodes; see docs/RESULTS.md).
-        ("trainer-0", &["--role", "trainer", "--lockstep"]),
-        ("trainer-1", &["--role", "trainer", "--lockstep"]),
-        ("trainer-2", &["--role", "trainer", "--lockstep"]),
+        ("trainer-0", &["--role", "trainer"]),
+        ("trainer-1", &["--role", "trainer"]),
+        ("trainer-2", &["--role", "trainer"]),
     ];
     for (name, extra) in actors {
         let mut args = vec!["actor", "--learner", &url, "--id", name];

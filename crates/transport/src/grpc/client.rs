@@ -311,10 +311,7 @@ impl ActorLink for GrpcLink {
                 .timed_out()
                 && !outbox.unacked.is_empty()
             {
-                return Err(LinkError::Unavailable(format!(
-                    "{} messages still unacknowledged after {timeout:?}",
-                    outbox.unacked.len()
-                )));
+                return Err(LinkError::TimedOut(outbox.unacked.len()));
             }
         }
     }
