@@ -6,9 +6,11 @@
 //! - [`registry`]: every built-in environment by name (continuous tasks and grid worlds);
 //! - [`run_dir`]: the run directory (`config.toml`, `curve.csv`, `curve.svg`, weights,
 //!   `summary.json`);
-//! - [`plot`]: SVG learning curves.
+//! - [`plot`]: SVG learning curves;
+//! - [`logging`]: the tracing setup every binary shares.
 
 pub mod config;
+pub mod logging;
 pub mod plot;
 pub mod registry;
 pub mod run_dir;

@@ -1,5 +1,7 @@
-//! A distributed run with the real `hac` binary: a learner service, three trainer actors and an
-//! evaluator over loopback gRPC, to completion, learning mountain-car from nothing.
+//! Distributed runs with the real `hac` binary over loopback gRPC: a learner service, three
+//! trainer actors and an evaluator learning mountain-car from nothing; and the faults: an actor
+//! killed with SIGKILL and started again, a learner killed with SIGKILL and started again on the
+//! same address.
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
@@ -195,5 +197,244 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         4,
         "{learner_log}"
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Starts `hac learner` with `args` and returns it with its `host:port`.
+fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
+    let mut child = hac(args, logs, name);
+    let mut first_line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first_line)
+        .unwrap();
+    let addr = first_line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| {
+            panic!(
+                "expected `listening on <addr>`, got {first_line:?}\n{}",
+                all_logs(logs)
+            )
+        })
+        .to_string();
+    (child, addr)
+}
+
+fn summary(out: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn count(summary: &serde_json::Value, key: &str) -> u64 {
+    summary[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("{key} in {summary}"))
+}
+
+/// Waits until `path` holds at least `lines` lines.
+fn wait_for_lines(path: &Path, lines: usize, logs: &Path) {
+    let started = Instant::now();
+    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < lines {
+        assert!(
+            started.elapsed() < DEADLINE,
+            "{} never reached {lines} lines\n{}",
+            path.display(),
+            all_logs(logs)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
+    let dir = scratch("actor");
+    let out = dir.join("out");
+    let (learner, addr) = learner(
+        &[
+            "learner",
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "80",
+            "--set",
+            "test_episodes=5",
+            "--listen",
+            "127.0.0.1:0",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &dir,
+        "learner",
+    );
+    let url = format!("http://{addr}");
+    let mut processes = Processes(vec![("learner".into(), learner)]);
+    for (name, extra) in [
+        (
+            "evaluator",
+            &["--role", "evaluator", "--eval-every", "20"][..],
+        ),
+        ("trainer-0", &["--role", "trainer"][..]),
+        ("trainer-1", &["--role", "trainer"][..]),
+    ] {
+        let mut args = vec!["actor", "--learner", &url, "--id", name];
+        args.extend_from_slice(extra);
+        processes.0.push((name.into(), hac(&args, &dir, name)));
+    }
+    // Mid-run: once the first evaluation is on the curve (20 episodes trained).
+    wait_for_lines(&out.join("curve.csv"), 2, &dir);
+    let (_, victim) = processes
+        .0
+        .iter_mut()
+        .find(|(n, _)| n == "trainer-1")
+        .unwrap();
+    victim.kill().unwrap(); // SIGKILL
+    let status = victim.wait().unwrap();
+    assert!(!status.success());
+    processes.0.retain(|(n, _)| n != "trainer-1");
+    processes.0.push((
+        "trainer-1-again".into(),
+        hac(
+            &[
+                "actor",
+                "--learner",
+                &url,
+                "--id",
+                "trainer-1",
+                "--role",
+                "trainer",
+            ],
+            &dir,
+            "trainer-1-again",
+        ),
+    ));
+
+    for (name, status) in processes.wait_all(&dir) {
+        assert!(
+            status.success(),
+            "{name} exited with {status}\n{}",
+            all_logs(&dir)
+        );
+    }
+    let s = summary(&out);
+    // Exactly once: every message that reached the learner was stored, a duplicate of a stored
+    // one, or refused (the killed incarnation's stragglers, if any), and every transition counted
+    // at ingest is in replay once.
+    let rejected: u64 = s["rejected"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        count(&s, "messages"),
+        count(&s, "batches") + count(&s, "episodes_ingested") + count(&s, "duplicates") + rejected,
+        "{s}"
+    );
+    assert_eq!(
+        count(&s, "transitions"),
+        count(&s, "transitions_in_replay"),
+        "{s}"
+    );
+    assert!(
+        count(&s, "episodes") >= 80,
+        "training went on to the budget: {s}"
+    );
+    let log = std::fs::read_to_string(dir.join("learner.log")).unwrap();
+    assert_eq!(
+        log.matches("actor registered actor=trainer-1").count(),
+        2,
+        "{log}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn actors_reconnect_by_themselves_to_a_restarted_learner() {
+    let dir = scratch("learner");
+    let out = dir.join("out");
+    // The same run both times (actors refuse a restarted learner with another config, by
+    // design); only where the outputs go differs.
+    let common = [
+        "--env",
+        "mountain-car",
+        "--levels",
+        "2",
+        "--episodes",
+        "60",
+        "--set",
+        "test_episodes=5",
+    ];
+    let first_out = dir.join("out-1");
+    let mut args = vec![
+        "learner",
+        "--listen",
+        "127.0.0.1:0",
+        "--out",
+        first_out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(&common);
+    let (first, addr) = learner(&args, &dir, "learner-1");
+    let url = format!("http://{addr}");
+    let mut processes = Processes(vec![("learner-1".into(), first)]);
+    for name in ["trainer-0", "trainer-1"] {
+        processes.0.push((
+            name.into(),
+            hac(&["actor", "--learner", &url, "--id", name], &dir, name),
+        ));
+    }
+    // Let the actors register and stream for a while, then kill the learner outright.
+    let started = Instant::now();
+    while std::fs::read_to_string(dir.join("learner-1.log"))
+        .unwrap_or_default()
+        .matches("actor registered")
+        .count()
+        < 2
+    {
+        assert!(
+            started.elapsed() < DEADLINE,
+            "actors never registered\n{}",
+            all_logs(&dir)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    let (_, first) = processes
+        .0
+        .iter_mut()
+        .find(|(n, _)| n == "learner-1")
+        .unwrap();
+    first.kill().unwrap();
+    first.wait().unwrap();
+    processes.0.retain(|(n, _)| n != "learner-1");
+    // Down for a moment: the actors retry with backoff meanwhile.
+    std::thread::sleep(Duration::from_millis(500));
+
+    let mut args = vec!["learner", "--listen", &addr, "--out", out.to_str().unwrap()];
+    args.extend_from_slice(&common);
+    let (second, addr_again) = learner(&args, &dir, "learner-2");
+    assert_eq!(addr_again, addr);
+    processes.0.push(("learner-2".into(), second));
+
+    for (name, status) in processes.wait_all(&dir) {
+        assert!(
+            status.success(),
+            "{name} exited with {status}\n{}",
+            all_logs(&dir)
+        );
+    }
+    let s = summary(&out);
+    assert!(
+        count(&s, "episodes_ingested") >= 60,
+        "the restarted learner got a run's worth: {s}"
+    );
+    let log = std::fs::read_to_string(dir.join("learner-2.log")).unwrap();
+    for name in ["trainer-0", "trainer-1"] {
+        assert!(
+            log.contains(&format!("actor registered actor={name}")),
+            "{name} re-registered by itself\n{log}"
+        );
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -2,6 +2,7 @@
 
 use clap::Parser;
 use hac_learner_service::LearnerArgs;
+use hac_run::logging::{LogFormat, init_tracing};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -17,23 +18,9 @@ struct Cli {
     args: LearnerArgs,
 }
 
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-enum LogFormat {
-    Plain,
-    Json,
-}
-
 fn main() {
     let cli = Cli::parse();
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let logs = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr);
-    match cli.log_format {
-        LogFormat::Plain => logs.init(),
-        LogFormat::Json => logs.json().init(),
-    }
+    init_tracing(cli.log_format);
     if let Err(e) = hac_learner_service::run(cli.args) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
