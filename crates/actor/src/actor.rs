@@ -325,6 +325,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     ) -> Result<(), ActorError> {
         let s = &mut self.s;
         let episodes = s.run.agent.test_episodes.max(1);
+        let mut successes = 0u32;
         let rate = test_episodes(
             &mut s.hierarchy,
             s.env.as_mut(),
@@ -332,9 +333,8 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             &mut s.exploration,
             &mut s.test_rng,
             episodes,
-            |_, _| {},
+            |outcome, _| successes += u32::from(outcome.success),
         );
-        let successes = (rate * episodes as f32).round() as u32;
         self.link
             .report_evaluation(snapshot.version, episodes as u32, successes)
             .map_err(ActorError::Link)?;

@@ -7,10 +7,12 @@
 //! - [`run_dir`]: the run directory (`config.toml`, `curve.csv`, `curve.svg`, weights,
 //!   `summary.json`);
 //! - [`plot`]: SVG learning curves;
-//! - [`logging`]: the tracing setup every binary shares.
+//! - [`logging`]: the tracing setup every binary shares;
+//! - [`signals`]: the interrupt flag of long-running commands.
 
 pub mod config;
 pub mod logging;
 pub mod plot;
 pub mod registry;
 pub mod run_dir;
+pub mod signals;

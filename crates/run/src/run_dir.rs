@@ -60,6 +60,25 @@ pub struct Summary {
     pub episodes_to_50: Option<u64>,
     pub episodes_to_90: Option<u64>,
     pub wall_time_s: f64,
+    /// What a particular entry point adds (the learner daemon: its ingest counts).
+    #[serde(flatten)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Summary {
+    /// The one line `hac train` prints at the end of a run.
+    pub fn done_line(&self, out: &Path) -> String {
+        format!(
+            "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
+            self.episodes,
+            self.wall_time_s,
+            100.0 * self.final_success,
+            100.0 * self.best_success,
+            self.episodes_to_90
+                .map_or("never".to_string(), |e| format!("after {e} episodes")),
+            out.display()
+        )
+    }
 }
 
 #[derive(Debug)]
@@ -120,12 +139,28 @@ impl RunDir {
         write_file(&self.path.join("curve.svg"), svg.as_bytes())
     }
 
+    /// Test rounds recorded so far.
+    pub fn rounds(&self) -> usize {
+        self.curve.len()
+    }
+
     /// Saves the weights and the summary.
     pub fn finish(
         &self,
         agent: &dyn Weights,
         curve: &[RoundReport],
         wall_time_s: f64,
+    ) -> Result<Summary> {
+        self.finish_with(agent, curve, wall_time_s, serde_json::Map::new())
+    }
+
+    /// [`finish`](Self::finish) with `extra` fields in `summary.json`.
+    pub fn finish_with(
+        &self,
+        agent: &dyn Weights,
+        curve: &[RoundReport],
+        wall_time_s: f64,
+        extra: serde_json::Map<String, serde_json::Value>,
     ) -> Result<Summary> {
         agent.save(&weights_dir(&self.path))?;
         let first_at = |target: f32| {
@@ -147,6 +182,7 @@ impl RunDir {
             episodes_to_50: first_at(0.5),
             episodes_to_90: first_at(0.9),
             wall_time_s,
+            extra,
         };
         write_file(
             &self.path.join("summary.json"),

@@ -7,8 +7,7 @@
 //! (checked between episodes; unacknowledged messages get `--flush-timeout` to reach the
 //! learner). A second signal exits at once.
 
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
@@ -110,7 +109,7 @@ pub fn run(args: ActorArgs) -> Result<()> {
         give_up_after: args.give_up_after,
         ..GrpcLinkOptions::default()
     };
-    let interrupt = interrupt_on_signals()?;
+    let interrupt = hac_run::signals::interrupt_flag()?;
     let mut link =
         GrpcLink::connect(&args.learner, link_options).context("invalid value for --learner")?;
     tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, "actor starting");
@@ -151,17 +150,4 @@ fn hostname() -> String {
         .map(|name| name.trim().to_string())
         .filter(|name| !name.is_empty())
         .unwrap_or_else(|| "actor".into())
-}
-
-/// A flag that SIGINT/SIGTERM set so the actor stops between episodes; a second signal while
-/// the flag is set exits at once.
-fn interrupt_on_signals() -> Result<Arc<AtomicBool>> {
-    let flag = Arc::new(AtomicBool::new(false));
-    for &signal in signal_hook::consts::TERM_SIGNALS {
-        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))
-            .context("installing signal handlers")?;
-        signal_hook::flag::register(signal, Arc::clone(&flag))
-            .context("installing signal handlers")?;
-    }
-    Ok(flag)
 }

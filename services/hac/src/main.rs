@@ -24,8 +24,7 @@ use hac_run::logging::{LogFormat, init_tracing};
 use hac_run::{config, plot, registry, run_dir};
 
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -240,7 +239,7 @@ fn main() {
     let result = match cli.command {
         Command::Train(args) => train(args),
         Command::Eval(args) => eval(args),
-        Command::Experiment(args) => interrupt_on_signals().and_then(|interrupt| {
+        Command::Experiment(args) => hac_run::signals::interrupt_flag().and_then(|interrupt| {
             experiment::run(experiment::Grid {
                 out: args
                     .out
@@ -316,7 +315,7 @@ fn train(args: TrainArgs) -> Result<()> {
     if tabular_cmd::handles(&run.env) {
         return tabular_cmd::train(&run, dir, &out);
     }
-    let interrupt = interrupt_on_signals()?;
+    let interrupt = hac_run::signals::interrupt_flag()?;
     println!(
         "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
         run.env,
@@ -350,31 +349,8 @@ fn train(args: TrainArgs) -> Result<()> {
         &trained.curve,
         started.elapsed().as_secs_f64(),
     )?;
-    println!(
-        "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
-        summary.episodes,
-        summary.wall_time_s,
-        100.0 * summary.final_success,
-        100.0 * summary.best_success,
-        summary
-            .episodes_to_90
-            .map_or("never".to_string(), |e| format!("after {e} episodes")),
-        out.display()
-    );
+    println!("{}", summary.done_line(&out));
     Ok(())
-}
-
-/// A flag that SIGINT/SIGTERM set so long runs stop between episodes and save their results; a
-/// second signal while the flag is set exits immediately.
-fn interrupt_on_signals() -> Result<Arc<AtomicBool>> {
-    let flag = Arc::new(AtomicBool::new(false));
-    for &signal in signal_hook::consts::TERM_SIGNALS {
-        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))
-            .context("installing signal handlers")?;
-        signal_hook::flag::register(signal, Arc::clone(&flag))
-            .context("installing signal handlers")?;
-    }
-    Ok(flag)
 }
 
 fn eval(args: EvalArgs) -> Result<()> {

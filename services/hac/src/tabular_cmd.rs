@@ -119,7 +119,7 @@ pub fn train_into(
 
 /// `hac train` for a grid world, into the already created run directory `dir` at `out`.
 pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
-    let interrupt = crate::interrupt_on_signals()?;
+    let interrupt = hac_run::signals::interrupt_flag()?;
     println!(
         "training {} with {} level{} (H = {}, tabular Q-learning), seed {}, {} episodes; test round every {} episodes; writing {}",
         run.env,
@@ -140,17 +140,7 @@ pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
             trained.episodes
         );
     }
-    println!(
-        "done: {} episodes in {:.1}s; final success {:.1}%, best {:.1}%; 90% reached {}; results in {}",
-        summary.episodes,
-        summary.wall_time_s,
-        100.0 * summary.final_success,
-        100.0 * summary.best_success,
-        summary
-            .episodes_to_90
-            .map_or("never".to_string(), |e| format!("after {e} episodes")),
-        out.display()
-    );
+    println!("{}", summary.done_line(out));
     Ok(())
 }
 

@@ -31,7 +31,7 @@ use tokio::net::TcpListener;
 use tokio::signal::unix::{Signal, SignalKind, signal};
 use tokio::sync::watch;
 
-use crate::run_dir::RunDir;
+use hac_run::run_dir::RunDir;
 
 /// The learner daemon's flags (also `hac learner`'s).
 #[derive(Debug, clap::Args)]
@@ -175,8 +175,8 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     served?;
     let learner = Arc::into_inner(learner).context("the learner is still in use after shutdown")?;
     let finished = learner.shutdown();
-    dir.record(&finished.curve)?;
-    let summary = dir.finish(&finished, started.elapsed())?;
+    run_dir::record_new(&mut dir, &finished.curve)?;
+    let summary = run_dir::finish(&dir, &finished, started.elapsed().as_secs_f64())?;
     tracing::info!(
         episodes = finished.status.episodes,
         transitions = finished.status.transitions,
@@ -260,7 +260,7 @@ async fn serve_run(
                 grace_until = Some(tokio::time::Instant::now() + args.grace_period);
             }
             () = grace_over => break,
-            _ = tick.tick() => dir.record(&learner.curve())?,
+            _ = tick.tick() => run_dir::record_new(dir, &learner.curve())?,
         }
     }
     tokio::spawn(async move {
@@ -273,5 +273,5 @@ async fn serve_run(
         .await
         .context("the server task failed")?
         .context("serving actors")?;
-    dir.record(&learner.curve())
+    run_dir::record_new(dir, &learner.curve())
 }
