@@ -192,6 +192,23 @@ impl RunDir {
     }
 }
 
+/// The line `hac train` prints before training `run` into `out`; `learner` names a learner other
+/// than the neural default (e.g. "tabular Q-learning").
+pub fn training_banner(run: &RunConfig, out: &Path, learner: Option<&str>) -> String {
+    format!(
+        "training {} with {} level{} (H = {}{}), seed {}, {} episodes; test round every {} episodes; writing {}",
+        run.env,
+        run.levels,
+        if run.levels == 1 { "" } else { "s" },
+        run.agent.horizon,
+        learner.map(|l| format!(", {l}")).unwrap_or_default(),
+        run.seed,
+        run.episodes,
+        run.agent.exploration_episodes,
+        out.display()
+    )
+}
+
 /// Writes atomically (temp file, then rename) so a reader never sees half a file.
 pub fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");

@@ -316,17 +316,7 @@ fn train(args: TrainArgs) -> Result<()> {
         return tabular_cmd::train(&run, dir, &out);
     }
     let interrupt = hac_run::signals::interrupt_flag()?;
-    println!(
-        "training {} with {} level{} (H = {}), seed {}, {} episodes; test round every {} episodes; writing {}",
-        run.env,
-        run.levels,
-        if run.levels == 1 { "" } else { "s" },
-        run.agent.horizon,
-        run.seed,
-        run.episodes,
-        run.agent.exploration_episodes,
-        out.display()
-    );
+    println!("{}", run_dir::training_banner(&run, &out, None));
     let started = Instant::now();
     let mut write_error = None;
     let trained = train_embedded(&run, &interrupt, |report: &RoundReport| {

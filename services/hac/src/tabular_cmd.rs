@@ -121,15 +121,8 @@ pub fn train_into(
 pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
     let interrupt = hac_run::signals::interrupt_flag()?;
     println!(
-        "training {} with {} level{} (H = {}, tabular Q-learning), seed {}, {} episodes; test round every {} episodes; writing {}",
-        run.env,
-        run.levels,
-        if run.levels == 1 { "" } else { "s" },
-        run.agent.horizon,
-        run.seed,
-        run.episodes,
-        run.agent.exploration_episodes,
-        out.display()
+        "{}",
+        run_dir::training_banner(run, out, Some("tabular Q-learning"))
     );
     let (trained, summary) = train_into(run, &mut dir, &interrupt, |report| {
         println!("{}", schedule::progress_line(report));
