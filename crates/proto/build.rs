@@ -8,6 +8,19 @@
 
 use std::path::PathBuf;
 
+/// The status messages derive `serde::Serialize`, so that `hac status --json` prints them as
+/// they travel.
+const SERIALIZED: [&str; 8] = [
+    "hac.v1.NodeStatus",
+    "hac.v1.NodeStatus.node",
+    "hac.v1.LearnerStatus",
+    "hac.v1.LevelStatus",
+    "hac.v1.RejectCount",
+    "hac.v1.RegisteredActor",
+    "hac.v1.EvaluationPoint",
+    "hac.v1.ActorStatus",
+];
+
 const PROTOS: [&str; 3] = [
     "hac/v1/transitions.proto",
     "hac/v1/learner.proto",
@@ -28,7 +41,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut config = tonic_prost_build::Config::new();
     config.protoc_executable(protoc);
 
-    tonic_prost_build::configure()
+    let mut builder = tonic_prost_build::configure();
+    for path in SERIALIZED {
+        builder = builder.type_attribute(path, "#[derive(serde::Serialize)]");
+    }
+    builder
+        .type_attribute(
+            "hac.v1.NodeStatus.node",
+            "#[serde(rename_all = \"snake_case\")]",
+        )
+        // `{"learner": {...}}` rather than `{"node": {"learner": {...}}}`.
+        .field_attribute("hac.v1.NodeStatus.node", "#[serde(flatten)]")
         .build_server(true)
         .build_client(true)
         .file_descriptor_set_path(out_dir.join("hac_v1_descriptor.bin"))

@@ -17,10 +17,16 @@
 //!   run finishes when a point reaches `stop_at` or the episode budget is trained (and
 //!   evaluated, if an evaluator is registered). The final snapshot says so, and actors stop.
 //!
+//! - [`Learner::status`] is a consistent-enough snapshot for operators (counters, per-level
+//!   replay and rate limiter state, rates over a sliding [`RateWindow`], every actor); the
+//!   per-actor message rate limit ([`Learner::throttle`], a [`TokenBucket`] per actor) is applied
+//!   by the transports before they hand a message to ingest.
+//!
 //! Transports (in-process, gRPC) are thin adapters over these methods; they live in
 //! `hac-transport`.
 
 mod published;
+mod rates;
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -42,6 +48,10 @@ use parking_lot::{Mutex, RwLock};
 use sha2::{Digest, Sha256};
 
 pub use published::Published;
+pub use rates::{RateWindow, TokenBucket};
+
+/// The span status rates are averaged over.
+pub const RATES_WINDOW: Duration = Duration::from_secs(10);
 
 /// How the learner runs (not part of the algorithm's hyperparameters).
 #[derive(Debug, Clone, PartialEq)]
@@ -59,6 +69,9 @@ pub struct LearnerOptions {
     /// The rate limiter's error buffer, in episodes' worth of updates: how far ingest may run
     /// ahead of training before actors are held back. At least 1.
     pub error_buffer_episodes: f64,
+    /// Most ingest messages per second taken from one actor (see [`Learner::throttle`]); `None`
+    /// for no limit.
+    pub max_actor_messages_per_second: Option<f64>,
 }
 
 impl LearnerOptions {
@@ -70,6 +83,7 @@ impl LearnerOptions {
             max_publish_delay: Duration::from_millis(100),
             max_weights_lag: 16,
             error_buffer_episodes: 2.0,
+            max_actor_messages_per_second: None,
         }
     }
 }
@@ -244,6 +258,12 @@ struct ActorEntry {
     transitions: u64,
     duplicates: u64,
     weights_version: u64,
+    /// How the actor reaches the learner, as its transport reported it ("" until then).
+    transport: &'static str,
+    /// `[env_steps]` over time, for the actor's env steps per second.
+    env_steps_rate: RateWindow,
+    /// The message rate limit, carried over from the actor's earlier incarnations.
+    bucket: Option<TokenBucket>,
 }
 
 /// A level's trainer output, shared with ingest and the publisher.
@@ -288,6 +308,9 @@ struct Counters {
     successes: AtomicU64,
     env_steps: AtomicU64,
     rejected: [AtomicU64; RejectReason::ALL.len()],
+    /// Messages the per-actor rate limit held back, and the waits it imposed (nanoseconds).
+    throttled: AtomicU64,
+    throttled_ns: AtomicU64,
 }
 
 #[derive(Debug)]
@@ -306,6 +329,8 @@ struct Shared {
     weights: Published<WeightsSnapshot>,
     curve: Mutex<CurveState>,
     counters: Counters,
+    /// `[transitions, batches, episodes, env_steps, updates of level 0, 1, ...]` over time.
+    rates: Mutex<RateWindow>,
     finished: AtomicBool,
     started: Instant,
 }
@@ -322,6 +347,8 @@ pub struct Learner {
 #[derive(Debug, Clone)]
 pub struct LevelStatus {
     pub updates: u64,
+    /// Over the status's `rates.window`.
+    pub updates_per_s: f64,
     pub replay_len: usize,
     pub replay_capacity: usize,
     pub shard_lens: Vec<usize>,
@@ -343,7 +370,28 @@ pub struct ActorStatus {
     pub env_steps: u64,
     pub transitions: u64,
     pub duplicates: u64,
+    /// The newest weights version the actor acted with (batches, episodes and evaluation
+    /// reports carry it).
     pub weights_version: u64,
+    /// Versions between the learner's newest and `weights_version`.
+    pub weights_lag: u64,
+    /// How the actor reaches the learner ("grpc", "shm"; "" before its transport said).
+    pub transport: &'static str,
+    /// Over the time since the actor's previous status sample (about [`RATES_WINDOW`]).
+    pub env_steps_per_s: f64,
+}
+
+/// Ingest rates over a sliding window (about [`RATES_WINDOW`], or the time since the previous
+/// status when status is read rarely).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Rates {
+    pub window: Duration,
+    pub transitions_per_s: f64,
+    pub batches_per_s: f64,
+    pub episodes_per_s: f64,
+    pub env_steps_per_s: f64,
+    /// Every level together (each level's own is in its [`LevelStatus`]).
+    pub updates_per_s: f64,
 }
 
 /// A status snapshot of the learner.
@@ -361,7 +409,12 @@ pub struct LearnerStatus {
     pub successes: u64,
     pub env_steps: u64,
     pub rejected: Vec<(RejectReason, u64)>,
+    /// Messages the per-actor rate limit held back, and the total wait it imposed.
+    pub throttled: u64,
+    pub throttled_for: Duration,
+    pub rates: Rates,
     pub levels: Vec<LevelStatus>,
+    /// Sorted by id.
     pub actors: Vec<ActorStatus>,
 }
 
@@ -402,6 +455,15 @@ impl Learner {
         }
         if !(options.error_buffer_episodes.is_finite() && options.error_buffer_episodes >= 1.0) {
             return option("error_buffer_episodes", "must be at least 1");
+        }
+        if options
+            .max_actor_messages_per_second
+            .is_some_and(|r| !(r.is_finite() && r > 0.0))
+        {
+            return option(
+                "max_actor_messages_per_second",
+                "must be a positive number of messages per second",
+            );
         }
         let env = run.make_env().map_err(|e| StartError::Option {
             key: "env",
@@ -471,6 +533,7 @@ impl Learner {
                 last_updates: 0,
             }),
             counters: Counters::default(),
+            rates: Mutex::new(RateWindow::new(Instant::now(), 4 + levels, RATES_WINDOW)),
             finished: AtomicBool::new(false),
             started: Instant::now(),
         });
@@ -537,10 +600,19 @@ impl Learner {
         let now = Instant::now();
         let ordinal = {
             let mut actors = shared.actors.write();
-            let ordinal = actors
-                .get(&registration.actor_id)
-                .map(|e| e.lock().ordinal)
-                .unwrap_or(actors.len() as u64);
+            let (ordinal, bucket) = match actors.get(&registration.actor_id) {
+                Some(earlier) => {
+                    let earlier = earlier.lock();
+                    (earlier.ordinal, earlier.bucket.clone())
+                }
+                None => (actors.len() as u64, None),
+            };
+            let bucket = bucket.or_else(|| {
+                shared
+                    .options
+                    .max_actor_messages_per_second
+                    .map(|rate| TokenBucket::new(rate, now))
+            });
             actors.insert(
                 registration.actor_id.clone(),
                 Arc::new(Mutex::new(ActorEntry {
@@ -557,6 +629,9 @@ impl Learner {
                     transitions: 0,
                     duplicates: 0,
                     weights_version: 0,
+                    transport: "",
+                    env_steps_rate: RateWindow::new(now, 1, RATES_WINDOW),
+                    bucket,
                 })),
             );
             ordinal
@@ -599,6 +674,43 @@ impl Learner {
         Ok(())
     }
 
+    /// The per-actor message rate limit (`max_actor_messages_per_second`): takes a token from
+    /// `actor_id`'s bucket and says how long to hold its message back before [`ingest`]
+    /// (zero without a limit, or for an unknown actor, which ingest refuses anyway). Transports
+    /// wait without reading further, so the actor's sends block (backpressure), and nothing is
+    /// refused. Held-back messages and the waits are counted in status.
+    ///
+    /// [`ingest`]: Self::ingest
+    pub fn throttle(&self, actor_id: &str) -> Duration {
+        if self.shared.options.max_actor_messages_per_second.is_none() {
+            return Duration::ZERO;
+        }
+        let Some(entry) = self.shared.actor(actor_id) else {
+            return Duration::ZERO;
+        };
+        let wait = match entry.lock().bucket.as_mut() {
+            Some(bucket) => bucket.take(Instant::now()),
+            None => Duration::ZERO,
+        };
+        if !wait.is_zero() {
+            let counters = &self.shared.counters;
+            counters.throttled.fetch_add(1, Ordering::Relaxed);
+            counters.throttled_ns.fetch_add(
+                u64::try_from(wait.as_nanos()).unwrap_or(u64::MAX),
+                Ordering::Relaxed,
+            );
+        }
+        wait
+    }
+
+    /// Records how `actor_id` reaches the learner (shown in status): transports call this when
+    /// an actor registers or opens a stream through them. Unknown actors are ignored.
+    pub fn set_actor_transport(&self, actor_id: &str, transport: &'static str) {
+        if let Some(entry) = self.shared.actor(actor_id) {
+            entry.lock().transport = transport;
+        }
+    }
+
     /// Validates and stores one message of an actor's ingest stream; see the crate docs. On
     /// error nothing is stored and the rejection is counted.
     pub fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
@@ -632,6 +744,18 @@ impl Learner {
     /// The learning curve so far, one point per evaluation report.
     pub fn curve(&self) -> Vec<RoundReport> {
         self.shared.curve.lock().points.clone()
+    }
+
+    /// The last `max` points of the learning curve (all of them for 0), and how many there are.
+    pub fn recent_curve(&self, max: usize) -> (usize, Vec<RoundReport>) {
+        let curve = self.shared.curve.lock();
+        let total = curve.points.len();
+        let from = if max == 0 {
+            0
+        } else {
+            total.saturating_sub(max)
+        };
+        (total, curve.points[from..].to_vec())
     }
 
     /// Publishes the current weights again as a new version and returns it (weights fan-out
@@ -804,6 +928,10 @@ impl Shared {
                 }
             }
         };
+        {
+            let mut actor = entry.lock();
+            actor.weights_version = actor.weights_version.max(evaluation.weights_version);
+        }
         let success_rate = evaluation.successes as f32 / evaluation.episodes as f32;
         let status = self.status();
         let env_steps = status.env_steps;
@@ -998,7 +1126,7 @@ impl Shared {
     fn status(&self) -> LearnerStatus {
         let c = &self.counters;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let levels = self
+        let mut levels: Vec<LevelStatus> = self
             .slots
             .iter()
             .enumerate()
@@ -1007,6 +1135,7 @@ impl Shared {
                 let slot = slot.lock();
                 LevelStatus {
                     updates: slot.completed,
+                    updates_per_s: 0.0,
                     replay_len: table.len(),
                     replay_capacity: table.capacity(),
                     shard_lens: table.shard_lens().collect(),
@@ -1016,45 +1145,76 @@ impl Shared {
                 }
             })
             .collect();
+        let weights_version = self.publisher.lock().version;
+        let now = Instant::now();
         let mut actors: Vec<ActorStatus> = self
             .actors
             .read()
             .iter()
             .map(|(id, entry)| {
-                let a = entry.lock();
+                let mut a = entry.lock();
+                let env_steps = a.env_steps;
+                let (_, rate) = a.env_steps_rate.rates(now, &[env_steps]);
                 ActorStatus {
                     actor_id: id.clone(),
                     role: a.role,
                     hostname: a.hostname.clone(),
                     incarnation: a.incarnation,
-                    registered_for: a.registered_at.elapsed(),
-                    last_seen_ago: a.last_seen.elapsed(),
+                    registered_for: now.saturating_duration_since(a.registered_at),
+                    last_seen_ago: now.saturating_duration_since(a.last_seen),
                     episodes: a.episodes,
-                    env_steps: a.env_steps,
+                    env_steps,
                     transitions: a.transitions,
                     duplicates: a.duplicates,
                     weights_version: a.weights_version,
+                    weights_lag: weights_version.saturating_sub(a.weights_version),
+                    transport: a.transport,
+                    env_steps_per_s: rate[0],
                 }
             })
             .collect();
         actors.sort_by(|a, b| a.actor_id.cmp(&b.actor_id));
+        let (transitions, batches, episodes, env_steps) = (
+            load(&c.transitions),
+            load(&c.batches),
+            load(&c.episodes),
+            load(&c.env_steps),
+        );
+        let totals: Vec<u64> = [transitions, batches, episodes, env_steps]
+            .into_iter()
+            .chain(levels.iter().map(|l| l.updates))
+            .collect();
+        let (window, per_s) = self.rates.lock().rates(now, &totals);
+        for (level, rate) in levels.iter_mut().zip(&per_s[4..]) {
+            level.updates_per_s = *rate;
+        }
         LearnerStatus {
-            uptime: self.started.elapsed(),
+            uptime: now.saturating_duration_since(self.started),
             run_config_digest: self.digest.clone(),
-            weights_version: self.publisher.lock().version,
+            weights_version,
             finished: self.finished.load(Ordering::Acquire),
             messages: load(&c.messages),
             duplicates: load(&c.duplicates),
-            batches: load(&c.batches),
-            transitions: load(&c.transitions),
-            episodes: load(&c.episodes),
+            batches,
+            transitions,
+            episodes,
             successes: load(&c.successes),
-            env_steps: load(&c.env_steps),
+            env_steps,
             rejected: RejectReason::ALL
                 .iter()
                 .zip(&c.rejected)
                 .map(|(&r, n)| (r, load(n)))
                 .collect(),
+            throttled: load(&c.throttled),
+            throttled_for: Duration::from_nanos(load(&c.throttled_ns)),
+            rates: Rates {
+                window,
+                transitions_per_s: per_s[0],
+                batches_per_s: per_s[1],
+                episodes_per_s: per_s[2],
+                env_steps_per_s: per_s[3],
+                updates_per_s: per_s[4..].iter().sum(),
+            },
             levels,
             actors,
         }

@@ -320,3 +320,95 @@ fn invalid_options_are_refused_by_name() {
     let e = Learner::start(config, options).unwrap_err();
     assert!(e.to_string().contains("max_batch_transitions"), "{e}");
 }
+
+#[test]
+fn status_knows_each_actors_transport_version_lag_and_rates() {
+    let learner = start(1000);
+    let trainer = learner
+        .register(registration("t", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let evaluator = learner
+        .register(registration("e", ActorRole::Evaluator))
+        .unwrap()
+        .incarnation;
+    learner.set_actor_transport("t", "grpc");
+    learner.set_actor_transport("nobody", "grpc");
+    learner
+        .ingest(&msg("t", trainer, 1, batch(&learner, 0, 8)))
+        .unwrap();
+    learner.ingest(&msg("t", trainer, 2, episode())).unwrap();
+    let newest = learner.republish();
+    learner
+        .report_evaluation(&Evaluation {
+            actor_id: "e".into(),
+            incarnation: evaluator,
+            weights_version: newest,
+            episodes: 2,
+            successes: 1,
+        })
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(20));
+    let status = learner.status();
+    let [e, t] = status.actors.as_slice() else {
+        panic!("two actors: {:?}", status.actors);
+    };
+    assert_eq!((t.actor_id.as_str(), t.transport), ("t", "grpc"));
+    assert_eq!(e.transport, "", "set by the transport, not guessed");
+    assert_eq!(t.weights_version, 1);
+    assert_eq!(t.weights_lag, status.weights_version - 1);
+    // An evaluator's version comes from its reports.
+    assert_eq!(e.weights_version, newest);
+    assert_eq!(e.weights_lag, status.weights_version - newest);
+    assert!(t.env_steps_per_s > 0.0, "{t:?}");
+    assert!(status.rates.transitions_per_s > 0.0, "{:?}", status.rates);
+    assert!(status.rates.episodes_per_s > 0.0);
+    assert!(status.rates.window > Duration::ZERO);
+    assert_eq!(
+        (status.throttled, status.throttled_for),
+        (0, Duration::ZERO)
+    );
+    assert_eq!(learner.throttle("t"), Duration::ZERO, "no limit configured");
+}
+
+#[test]
+fn the_message_rate_limit_is_per_actor_and_survives_reregistration() {
+    let config = run(1000);
+    let mut options = LearnerOptions::for_run(&config);
+    options.max_actor_messages_per_second = Some(2.0);
+    let learner = Learner::start(config.clone(), options).unwrap();
+    learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap();
+    learner
+        .register(registration("b", ActorRole::Trainer))
+        .unwrap();
+    // A burst of 2, then the third waits (up to) half a second.
+    assert_eq!(learner.throttle("a"), Duration::ZERO);
+    assert_eq!(learner.throttle("a"), Duration::ZERO);
+    let wait = learner.throttle("a");
+    assert!(
+        wait > Duration::ZERO && wait <= Duration::from_millis(500),
+        "{wait:?}"
+    );
+    // Another actor has its own bucket; an unknown one is left to ingest to refuse.
+    assert_eq!(learner.throttle("b"), Duration::ZERO);
+    assert_eq!(learner.throttle("nobody"), Duration::ZERO);
+    // Registering again does not refill the bucket.
+    learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap();
+    let again = learner.throttle("a");
+    assert!(again > Duration::ZERO);
+    let status = learner.status();
+    assert_eq!(status.throttled, 2);
+    assert_eq!(status.throttled_for, wait + again);
+
+    let mut options = LearnerOptions::for_run(&config);
+    options.max_actor_messages_per_second = Some(0.0);
+    let e = Learner::start(config, options).unwrap_err();
+    assert!(
+        e.to_string().contains("max_actor_messages_per_second"),
+        "{e}"
+    );
+}

@@ -127,6 +127,8 @@ pub struct RateLimiterStatus {
     pub trainer_blocked: Duration,
     /// Ingest admission checks that found no room (each blocking wait counts once).
     pub ingest_refused: u64,
+    /// Total time ingest callers spent waiting for room.
+    pub ingest_blocked: Duration,
     /// Trainers waiting for an update right now.
     pub trainers_waiting: usize,
     /// Ingest callers waiting for room right now.
@@ -142,6 +144,7 @@ struct State {
     updates: u64,
     trainer_blocked: Duration,
     ingest_refused: u64,
+    ingest_blocked: Duration,
     trainers_waiting: usize,
     ingest_waiting: usize,
     closed: bool,
@@ -280,10 +283,12 @@ impl RateLimiter {
         if !state.closed && !state.has_room(config) {
             state.ingest_refused += 1;
             if !timeout.is_zero() {
+                let started = Instant::now();
                 state.ingest_waiting += 1;
                 self.room
                     .wait_while_for(&mut state, |s| !s.closed && !s.has_room(config), timeout);
                 state.ingest_waiting -= 1;
+                state.ingest_blocked += started.elapsed();
             }
         }
         if state.closed {
@@ -348,6 +353,7 @@ impl RateLimiter {
             deficit: state.deficit(self.config.updates_per_episode),
             trainer_blocked: state.trainer_blocked,
             ingest_refused: state.ingest_refused,
+            ingest_blocked: state.ingest_blocked,
             trainers_waiting: state.trainers_waiting,
             ingest_waiting: state.ingest_waiting,
             closed: state.closed,
@@ -519,6 +525,8 @@ mod tests {
         assert!(limiter.try_accept());
         assert_eq!(limiter.wait_for_room(Duration::ZERO), Ok(()));
         assert_eq!(limiter.status().ingest_refused, 5);
+        // Checks that do not wait take no time.
+        assert_eq!(limiter.status().ingest_blocked, Duration::ZERO);
     }
 
     #[test]
@@ -534,6 +542,7 @@ mod tests {
             assert_eq!(ingest.join().unwrap(), Ok(()));
         });
         assert_eq!(limiter.status().ingest_refused, 1);
+        assert!(limiter.status().ingest_blocked > Duration::ZERO);
     }
 
     /// A scripted run in one thread: the trainer makes `step % 5` attempts per step (2 on

@@ -8,11 +8,13 @@
 //!   `summary.json`);
 //! - [`plot`]: SVG learning curves;
 //! - [`logging`]: the tracing setup every binary shares;
-//! - [`signals`]: the interrupt flag of long-running commands.
+//! - [`signals`]: the interrupt flag of long-running commands;
+//! - [`security`]: the token and TLS flags of the daemons and `hac status`.
 
 pub mod config;
 pub mod logging;
 pub mod plot;
 pub mod registry;
 pub mod run_dir;
+pub mod security;
 pub mod signals;

@@ -49,6 +49,8 @@ impl ActorLink for InProcess {
         self.actor_id = registration.actor_id.clone();
         self.incarnation = admission.incarnation;
         self.sequence = 0;
+        self.learner
+            .set_actor_transport(&self.actor_id, self.transport());
         Ok(admission)
     }
 
@@ -100,5 +102,9 @@ impl ActorLink for InProcess {
                 successes,
             })
             .map_err(refused)
+    }
+
+    fn transport(&self) -> &'static str {
+        "in-process"
     }
 }

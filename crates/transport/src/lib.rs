@@ -5,12 +5,19 @@
 //! - [`grpc`]: the learner service over tonic, for actors on any host: the server adapter
 //!   ([`grpc::serve`], [`grpc::LearnerGrpc`]) and the actor's side ([`grpc::GrpcLink`]).
 //!
+//! - [`security`]: the bearer token and TLS settings of servers and clients.
+//! - [`metrics`]: Prometheus text exposition over HTTP (`/metrics`), and the learner's metrics.
+//!
 //! The actor loop (`hac-actor`) is written against the trait only, so every transport runs the
 //! same actor code.
 
 pub mod grpc;
 mod in_process;
+pub mod metrics;
+pub mod security;
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use hac_learner::Published;
@@ -69,4 +76,50 @@ pub trait ActorLink: Send {
         episodes: u32,
         successes: u32,
     ) -> Result<(), LinkError>;
+
+    /// Live counters of the link for status and metrics, readable from any thread while the
+    /// link is in use (`None`: the link keeps none).
+    fn stats(&self) -> Option<Arc<LinkStats>> {
+        None
+    }
+
+    /// The transport's name in status and metrics: "in-process", "grpc", ...
+    fn transport(&self) -> &'static str {
+        "unknown"
+    }
+}
+
+/// A link's live counters (see [`ActorLink::stats`]).
+#[derive(Debug, Default)]
+pub struct LinkStats {
+    incarnation: AtomicU64,
+    unacked: AtomicU64,
+    reconnects: AtomicU64,
+    learner_version: AtomicU64,
+}
+
+impl LinkStats {
+    /// The incarnation the link's messages are numbered under (0 before registration).
+    pub fn incarnation(&self) -> u64 {
+        self.incarnation.load(Ordering::Relaxed)
+    }
+
+    /// Messages sent and not yet acknowledged.
+    pub fn unacked(&self) -> u64 {
+        self.unacked.load(Ordering::Relaxed)
+    }
+
+    /// Attempts to reach the learner again after a failed call or stream.
+    pub fn reconnects(&self) -> u64 {
+        self.reconnects.load(Ordering::Relaxed)
+    }
+
+    /// The newest weights version the learner announced.
+    pub fn learner_version(&self) -> u64 {
+        self.learner_version.load(Ordering::Relaxed)
+    }
+
+    fn set_unacked(&self, n: usize) {
+        self.unacked.store(n as u64, Ordering::Relaxed);
+    }
 }

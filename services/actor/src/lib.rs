@@ -6,7 +6,14 @@
 //! 0 when the learner says the run is finished, after `--max-episodes`, or after SIGINT/SIGTERM
 //! (checked between episodes; unacknowledged messages get `--flush-timeout` to reach the
 //! learner). A second signal exits at once.
+//!
+//! [`ops`]: the token and TLS it connects with, and its own status (`--status-listen`: the
+//! `hac.v1.Status` service, health `SERVING` while registered and acting, reflection) and
+//! Prometheus metrics (`--metrics-listen`).
 
+pub mod ops;
+
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
@@ -69,6 +76,8 @@ pub struct ActorArgs {
     /// Seconds to wait, after an interrupt, for the learner to acknowledge what was sent.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = seconds)]
     pub flush_timeout: Duration,
+    #[command(flatten)]
+    pub ops: ops::OpsArgs,
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -104,16 +113,44 @@ pub fn run(args: ActorArgs) -> Result<()> {
         batch_transitions: usize::try_from(args.batch_transitions)
             .context("invalid value for --batch-transitions")?,
     };
+    let ops = args.ops.resolve()?;
     let link_options = GrpcLinkOptions {
         window: usize::try_from(args.window).context("invalid value for --window")?,
         give_up_after: args.give_up_after,
+        token: ops.token.clone(),
+        tls: ops.client_tls.clone(),
         ..GrpcLinkOptions::default()
     };
     let interrupt = hac_run::signals::interrupt_flag()?;
     let mut link =
         GrpcLink::connect(&args.learner, link_options).context("invalid value for --learner")?;
+    let board = Arc::new(ops::Board::new(
+        actor_id.clone(),
+        hac_transport::grpc::role_name(options.role),
+        options.hostname.clone(),
+        args.learner.clone(),
+        interrupt.clone(),
+    ));
+    let mut observed = ops::Observed::new(&mut link, &board);
+    let servers = ops::OpsServers::start(&ops, board.clone())?;
     tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, "actor starting");
-    let summary = run_actor(&mut link, &options, &interrupt, |e| {
+    let result = act(&mut observed, &options, &interrupt, args.flush_timeout);
+    board.stopping();
+    if let Some(servers) = servers {
+        servers.stop();
+    }
+    result
+}
+
+/// Runs the actor loop through `link`, then gives what is unacknowledged `flush_timeout` to
+/// reach the learner (unless the run is over).
+fn act(
+    link: &mut dyn ActorLink,
+    options: &ActorOptions,
+    interrupt: &std::sync::atomic::AtomicBool,
+    flush_timeout: Duration,
+) -> Result<()> {
+    let summary = run_actor(link, options, interrupt, |e| {
         tracing::info!(
             weights_version = e.weights_version,
             trained_episodes = e.trained_episodes,
@@ -121,15 +158,15 @@ pub fn run(args: ActorArgs) -> Result<()> {
             "evaluation reported"
         );
     })
-    .with_context(|| format!("actor {actor_id}"))?;
+    .with_context(|| format!("actor {}", options.actor_id))?;
     if !summary.run_finished {
-        match link.flush(args.flush_timeout) {
+        match link.flush(flush_timeout) {
             Ok(()) | Err(LinkError::Finished) => {}
             Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
         }
     }
     tracing::info!(
-        actor = %actor_id,
+        actor = %options.actor_id,
         incarnation = summary.incarnation,
         episodes = summary.episodes,
         env_steps = summary.env_steps,

@@ -6,6 +6,8 @@
 //! - `hac experiment`: a grid of level counts x seeds with mean +- std plots and a summary.
 //! - `hac render`: one greedy episode of a trained run as an animated GIF or PNG frames.
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
+//! - `hac learner`, `hac actor`: the distributed daemons; `hac status`: a running learner's (or
+//!   actor's) status as a table or JSON, live with `--watch` ([`status_cmd`]).
 //!
 //! Modules: [`config`] resolves the run configuration from every source, [`registry`] names
 //! every environment, [`plot`] draws SVG learning curves, [`run_dir`] owns the layout of a run
@@ -18,6 +20,7 @@ mod env_cmd;
 mod experiment;
 mod render;
 mod schedule;
+mod status_cmd;
 mod tabular_cmd;
 
 use hac_run::logging::{LogFormat, init_tracing};
@@ -69,6 +72,10 @@ enum Command {
     Learner(hac_learner_service::LearnerArgs),
     /// Run one actor of a distributed run: connects to a learner service and streams rollouts.
     Actor(hac_actor_service::ActorArgs),
+    /// Show a running learner's status (or an actor's, with --actor): run, per-level updates,
+    /// losses, replay fill per shard, rates, rejections, actors and the latest evaluations; a
+    /// table, JSON with --json, refreshed live with --watch.
+    Status(status_cmd::StatusArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -284,6 +291,7 @@ fn main() {
         }
         Command::Learner(args) => hac_learner_service::run(args),
         Command::Actor(args) => hac_actor_service::run(args),
+        Command::Status(args) => status_cmd::run(&args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -6,15 +6,19 @@
 //!   flags), the same source as `hac train`'s.
 //! - `run_dir`: what the learner writes (`config.toml`, `curve.csv` as evaluations arrive, and at
 //!   the end `weights/level<i>.safetensors` and `summary.json`).
+//! - [`ops`]: metrics, the per-actor message rate limit, token and TLS flags ([`OpsArgs`]).
 //!
-//! Life of a run: validate the config, start the learner, bind `--listen` and print
-//! `listening on <addr>` (one line on stdout, for scripts), serve. When the run finishes by itself
-//! (episode budget or `stop_at`), keep serving for `--grace-period` so actors receive the final
-//! weights; on SIGINT/SIGTERM, finish the run at once. Then stop accepting, end open streams,
-//! drain connections (at most `--drain-timeout`), save, exit 0. A second signal exits at once.
+//! Life of a run: validate the config (and token and TLS files), start the learner, bind
+//! `--listen` and print `listening on <addr>` (one line on stdout, for scripts; then
+//! `metrics on <addr>` with `--metrics-listen`), serve (health `SERVING`). When the run finishes
+//! by itself (episode budget or `stop_at`), or on SIGINT/SIGTERM (which finishes the run at
+//! once), health turns `NOT_SERVING` and the learner keeps serving for `--grace-period` so that
+//! actors receive the final weights and stop; then it stops accepting, ends open streams, drains
+//! connections (at most `--drain-timeout`), saves, and exits 0. A second signal exits at once.
 
 // The same config resolution as `hac train`, so that every entry point resolves a run identically.
 pub use hac_run::config;
+pub mod ops;
 mod run_dir;
 
 use std::io::Write as _;
@@ -32,6 +36,7 @@ use tokio::signal::unix::{Signal, SignalKind, signal};
 use tokio::sync::watch;
 
 use hac_run::run_dir::RunDir;
+pub use ops::OpsArgs;
 
 /// The learner daemon's flags (also `hac learner`'s).
 #[derive(Debug, clap::Args)]
@@ -91,13 +96,15 @@ pub struct LearnerArgs {
     /// [default: 16].
     #[arg(long)]
     pub max_weights_lag: Option<u64>,
-    /// Seconds to keep serving after the run finishes by itself, so that every actor receives
-    /// the final weights and stops.
+    /// Seconds to keep serving after the run finishes (by itself, or on SIGINT/SIGTERM), so that
+    /// every actor receives the final weights and stops; health is NOT_SERVING meanwhile.
     #[arg(long, value_name = "SECS", default_value = "2", value_parser = seconds)]
     pub grace_period: Duration,
     /// Seconds to wait at shutdown for actors' connections to close.
     #[arg(long, value_name = "SECS", default_value = "5", value_parser = seconds)]
     pub drain_timeout: Duration,
+    #[command(flatten)]
+    pub ops: OpsArgs,
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -136,6 +143,7 @@ impl LearnerArgs {
         if let Some(n) = self.max_weights_lag {
             options.max_weights_lag = n;
         }
+        options.max_actor_messages_per_second = self.ops.max_actor_messages_per_second;
         Ok(options)
     }
 
@@ -144,6 +152,7 @@ impl LearnerArgs {
             max_message_bytes: usize::try_from(self.max_message_bytes)
                 .context("invalid value for --max-message-bytes")?,
             drain_timeout: self.drain_timeout,
+            security: self.ops.security()?,
         })
     }
 }
@@ -223,14 +232,23 @@ async fn serve_run(
         .await
         .with_context(|| format!("binding --listen {}", args.listen))?;
     let addr = listener.local_addr().context("reading the bound address")?;
+    let (stop, mut stopped) = watch::channel(false);
+    let metrics = args.ops.start_metrics(&learner, stop.subscribe()).await?;
     {
         let mut stdout = std::io::stdout().lock();
         writeln!(stdout, "listening on {addr}")?;
+        if let Some((metrics_addr, _)) = &metrics {
+            writeln!(stdout, "metrics on {metrics_addr}")?;
+        }
         stdout.flush()?;
     }
-    tracing::info!(%addr, run = %learner.status().run_config_digest, "learner service listening");
+    let tls = options.security.tls.is_some();
+    let token = options.security.token.is_some();
+    tracing::info!(%addr, tls, token, run = %learner.status().run_config_digest, "learner service listening");
+    if let Some((metrics_addr, _)) = &metrics {
+        tracing::info!(addr = %metrics_addr, path = "/metrics", "prometheus metrics served");
+    }
 
-    let (stop, mut stopped) = watch::channel(false);
     let server = tokio::spawn(serve(learner.clone(), listener, options, async move {
         // An error means the sender is gone: stop as well.
         let _ = stopped.wait_for(|&stop| stop).await;
@@ -238,6 +256,7 @@ async fn serve_run(
     let mut weights = learner.weights().subscribe();
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     let mut grace_until: Option<tokio::time::Instant> = None;
+    let mut interrupted = false;
     loop {
         let grace_over = async {
             match grace_until {
@@ -247,9 +266,18 @@ async fn serve_run(
         };
         tokio::select! {
             () = signals.recv() => {
-                tracing::info!("signal received: finishing the run (a second signal exits at once)");
+                if interrupted {
+                    tracing::warn!("second signal: exiting at once");
+                    std::process::exit(130);
+                }
+                interrupted = true;
+                if grace_until.is_some() {
+                    tracing::info!("signal received: shutting down (a second signal exits at once)");
+                    break;
+                }
+                tracing::info!(grace_period = ?args.grace_period, "signal received: finishing the run, serving the final weights, then draining (a second signal exits at once)");
                 learner.finish("interrupted");
-                break;
+                grace_until = Some(tokio::time::Instant::now() + args.grace_period);
             }
             finished = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)),
                 if grace_until.is_none() =>
@@ -273,5 +301,11 @@ async fn serve_run(
         .await
         .context("the server task failed")?
         .context("serving actors")?;
+    if let Some((_, metrics)) = metrics {
+        metrics
+            .await
+            .context("the metrics task failed")?
+            .context("serving metrics")?;
+    }
     run_dir::record_new(dir, &learner.curve())
 }

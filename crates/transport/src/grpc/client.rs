@@ -15,11 +15,16 @@
 //!   id registered again elsewhere): register again with the same [`Registration`], check that the
 //!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
 //!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
-//! - `finished`: [`LinkError::Finished`]. Any other refusal: [`LinkError::Refused`].
+//! - `finished`: [`LinkError::Finished`]. Any other refusal (including `unauthenticated`: a
+//!   missing or wrong token): [`LinkError::Refused`].
+//!
+//! # Security
+//! With a [`Token`] every request carries `authorization: Bearer <token>`; with [`ClientTls`]
+//! the learner's URL is `https://` and its certificate must chain to the configured CA.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use hac_core::Rng;
@@ -32,14 +37,19 @@ use tokio::sync::{Notify, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
 use tonic::codegen::http::uri::PathAndQuery;
-use tonic::transport::{Channel, Endpoint};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
 use tonic::{Code, Status};
 
 use super::{reject_reason, until_set};
-use crate::{ActorLink, LinkError};
+use crate::security::{BearerToken, ClientTls, EndpointError, Token, endpoint};
+use crate::{ActorLink, LinkError, LinkStats};
+
+/// The link's channel: every request carries the token, if any.
+type LinkChannel = InterceptedService<Channel, BearerToken>;
 
 /// How a [`GrpcLink`] talks to the learner.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct GrpcLinkOptions {
     /// Most messages sent and not yet acknowledged; [`ActorLink::send`] blocks while the window
     /// is full, which is how the learner's backpressure reaches the actor.
@@ -58,6 +68,10 @@ pub struct GrpcLinkOptions {
     pub max_message_bytes: usize,
     /// Seed of the backoff jitter.
     pub jitter_seed: u64,
+    /// Sent with every request, if set.
+    pub token: Option<Token>,
+    /// TLS to the learner (its URL must be `https://`, or a bare `host:port`), if set.
+    pub tls: Option<ClientTls>,
 }
 
 impl Default for GrpcLinkOptions {
@@ -73,6 +87,8 @@ impl Default for GrpcLinkOptions {
             give_up_after: Duration::from_secs(300),
             max_message_bytes: 64 << 20,
             jitter_seed: (u64::from(std::process::id()) << 32) | u64::from(nanos),
+            token: None,
+            tls: None,
         }
     }
 }
@@ -80,8 +96,8 @@ impl Default for GrpcLinkOptions {
 /// Why [`GrpcLink::connect`] could not make a link.
 #[derive(Debug, thiserror::Error)]
 pub enum ConnectError {
-    #[error("invalid learner url `{url}`: {message}")]
-    InvalidUrl { url: String, message: String },
+    #[error("the learner's address: {0}")]
+    Endpoint(#[from] EndpointError),
     #[error("the window must be at least 1")]
     ZeroWindow,
     #[error("starting the link's runtime: {0}")]
@@ -103,7 +119,7 @@ const INGEST_PATH: &str = "/hac.v1.Learner/Ingest";
 #[derive(Debug)]
 pub struct GrpcLink {
     shared: Arc<Shared>,
-    channel: Channel,
+    channel: LinkChannel,
     /// `Some` until drop.
     runtime: Option<Runtime>,
     tasks_started: bool,
@@ -118,7 +134,8 @@ struct Shared {
     /// Signalled when a message enters the outbox: the ingest task.
     queued: Notify,
     weights: Published<WeightsSnapshot>,
-    learner_version: AtomicU64,
+    /// Incarnation, unacknowledged messages, reconnects, the learner's newest version.
+    stats: Arc<LinkStats>,
     /// Set when the link is dropped: the tasks end.
     closed: watch::Sender<bool>,
     /// One re-registration at a time (the ingest task and a report may both find the learner
@@ -163,23 +180,15 @@ impl Outbox {
 }
 
 impl GrpcLink {
-    /// A link to the learner at `url` (`http://host:port`; a bare `host:port` means `http://`).
-    /// Connects lazily: nothing is sent before [`register`](ActorLink::register), which waits
-    /// for the learner to come up (within `give_up_after`).
+    /// A link to the learner at `url` (`http://host:port`, `https://host:port` with
+    /// `options.tls`; a bare `host:port` means either, as `options.tls` says). Connects lazily:
+    /// nothing is sent before [`register`](ActorLink::register), which waits for the learner to
+    /// come up (within `give_up_after`).
     pub fn connect(url: &str, options: GrpcLinkOptions) -> Result<Self, ConnectError> {
         if options.window == 0 {
             return Err(ConnectError::ZeroWindow);
         }
-        let url = if url.contains("://") {
-            url.to_string()
-        } else {
-            format!("http://{url}")
-        };
-        let endpoint = Endpoint::from_shared(url.clone())
-            .map_err(|e| ConnectError::InvalidUrl {
-                url: url.clone(),
-                message: e.to_string(),
-            })?
+        let endpoint = endpoint(url, options.tls.as_ref())?
             .connect_timeout(options.connect_timeout)
             .tcp_nodelay(true)
             .http2_keep_alive_interval(Duration::from_secs(10))
@@ -193,7 +202,7 @@ impl GrpcLink {
             .map_err(ConnectError::Runtime)?;
         let channel = {
             let _entered = runtime.enter();
-            endpoint.connect_lazy()
+            InterceptedService::new(endpoint.connect_lazy(), BearerToken(options.token.clone()))
         };
         let shared = Arc::new(Shared {
             jitter: Mutex::new(Rng::seed_from(options.jitter_seed)),
@@ -202,7 +211,7 @@ impl GrpcLink {
             changed: Condvar::new(),
             queued: Notify::new(),
             weights: Published::default(),
-            learner_version: AtomicU64::new(0),
+            stats: Arc::default(),
             closed: watch::Sender::new(false),
             registering: tokio::sync::Mutex::new(()),
         });
@@ -249,9 +258,9 @@ impl ActorLink for GrpcLink {
             let mut outbox = shared.outbox.lock();
             outbox.registration = Some(registration.clone());
             outbox.digest = admission.run_config_digest.clone();
-            renumber(&mut outbox, admission.incarnation);
+            renumber(&mut outbox, &shared.stats, admission.incarnation);
         }
-        shared.learner_version.store(0, Ordering::Relaxed);
+        shared.stats.learner_version.store(0, Ordering::Relaxed);
         if !self.tasks_started {
             self.tasks_started = true;
             let runtime = self.runtime();
@@ -289,6 +298,7 @@ impl ActorLink for GrpcLink {
         msg.incarnation = outbox.incarnation;
         msg.sequence = outbox.next_sequence();
         outbox.unacked.push_back(Arc::new(msg));
+        shared.stats.set_unacked(outbox.unacked.len());
         drop(outbox);
         shared.queued.notify_one();
         Ok(())
@@ -321,7 +331,15 @@ impl ActorLink for GrpcLink {
     }
 
     fn learner_version(&self) -> u64 {
-        self.shared.learner_version.load(Ordering::Relaxed)
+        self.shared.stats.learner_version()
+    }
+
+    fn stats(&self) -> Option<Arc<LinkStats>> {
+        Some(self.shared.stats.clone())
+    }
+
+    fn transport(&self) -> &'static str {
+        "grpc"
     }
 
     fn report_evaluation(
@@ -468,6 +486,7 @@ impl<'a> Retry<'a> {
             )));
         }
         self.attempts += 1;
+        self.shared.stats.reconnects.fetch_add(1, Ordering::Relaxed);
         let upper = self.delay;
         self.delay = (upper * 2).min(options.backoff_max);
         let delay = upper.mul_f64(0.5 + 0.5 * self.shared.jitter.lock().unit_f64());
@@ -496,8 +515,8 @@ impl<'a> Retry<'a> {
 
 fn learner_client(
     shared: &Shared,
-    channel: &Channel,
-) -> pb::learner_client::LearnerClient<Channel> {
+    channel: &LinkChannel,
+) -> pb::learner_client::LearnerClient<LinkChannel> {
     let max = shared.options.max_message_bytes;
     pb::learner_client::LearnerClient::new(channel.clone())
         .max_decoding_message_size(max)
@@ -506,7 +525,7 @@ fn learner_client(
 
 async fn register_until_admitted(
     shared: &Shared,
-    channel: &Channel,
+    channel: &LinkChannel,
     registration: &Registration,
 ) -> Result<Admission, LinkError> {
     let mut client = learner_client(shared, channel);
@@ -534,8 +553,9 @@ async fn register_until_admitted(
 }
 
 /// Numbers the outbox's messages from sequence 1 under `incarnation`.
-fn renumber(outbox: &mut Outbox, incarnation: u64) {
+fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     outbox.incarnation = incarnation;
+    stats.incarnation.store(incarnation, Ordering::Relaxed);
     outbox.acked_through = 0;
     for (sequence, msg) in (1..).zip(outbox.unacked.iter_mut()) {
         // Copies only a message still queued in a stream being torn down.
@@ -549,7 +569,7 @@ fn renumber(outbox: &mut Outbox, incarnation: u64) {
 /// was already done; renumbers the outbox under the new incarnation.
 async fn reregister(
     shared: &Shared,
-    channel: &Channel,
+    channel: &LinkChannel,
     failed_incarnation: u64,
 ) -> Result<(), LinkError> {
     let _one_at_a_time = shared.registering.lock().await;
@@ -582,10 +602,10 @@ async fn reregister(
     }
     let resent = {
         let mut outbox = shared.outbox.lock();
-        renumber(&mut outbox, admission.incarnation);
+        renumber(&mut outbox, &shared.stats, admission.incarnation);
         outbox.unacked.len()
     };
-    shared.learner_version.store(0, Ordering::Relaxed);
+    shared.stats.learner_version.store(0, Ordering::Relaxed);
     tracing::info!(
         actor = %registration.actor_id,
         incarnation = admission.incarnation,
@@ -618,9 +638,11 @@ impl Shared {
             outbox.unacked.pop_front();
             outbox.acked_through += 1;
         }
+        self.stats.set_unacked(outbox.unacked.len());
         outbox.reregistrations = 0;
         drop(outbox);
-        self.learner_version
+        self.stats
+            .learner_version
             .store(ack.weights_version, Ordering::Relaxed);
         self.changed.notify_all();
     }
@@ -634,7 +656,7 @@ enum StreamEnd {
 
 /// Keeps an ingest stream open while anything waits for an ack; reconnects, re-registers and
 /// resends as the module docs say.
-async fn ingest_task(shared: Arc<Shared>, channel: Channel) {
+async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
     let mut closed = shared.closed.subscribe();
     let mut retry = Retry::new(&shared, "ingest");
     loop {
@@ -670,7 +692,7 @@ async fn ingest_task(shared: Arc<Shared>, channel: Channel) {
 
 /// One ingest stream: sends every unacknowledged message from the oldest on, then each new one;
 /// applies acks as they come; returns when the stream fails or the link closes.
-async fn ingest_stream(shared: &Shared, channel: &Channel, retry: &mut Retry<'_>) -> StreamEnd {
+async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry<'_>) -> StreamEnd {
     let mut closed = shared.closed.subscribe();
     let max = shared.options.max_message_bytes;
     let mut grpc = tonic::client::Grpc::new(channel.clone())
@@ -728,7 +750,7 @@ async fn ingest_stream(shared: &Shared, channel: &Channel, retry: &mut Retry<'_>
 /// Keeps a weights stream open and publishes every snapshot it brings. Asks for the learner's
 /// current version each time (`min_version` 0): after a restart, versions start again lower, and
 /// the link takes them as they come.
-async fn weights_task(shared: Arc<Shared>, channel: Channel) {
+async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
     let mut closed = shared.closed.subscribe();
     let mut retry = Retry::new(&shared, "weights");
     let mut client = learner_client(&shared, &channel);
@@ -763,6 +785,7 @@ async fn weights_task(shared: Arc<Shared>, channel: Channel) {
                         "weights versions start again: the learner restarted"
                     );
                     shared
+                        .stats
                         .learner_version
                         .store(snapshot.version, Ordering::Relaxed);
                 }

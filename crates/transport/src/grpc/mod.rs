@@ -1,8 +1,14 @@
-//! The learner service over gRPC (tonic), both ends of it.
+//! The learner service over gRPC (tonic), both ends of it, and the operations services every
+//! server carries.
 //!
 //! - `server`: [`LearnerGrpc`] adapts a [`Learner`](hac_learner::Learner) to the generated
-//!   `hac.v1.Learner` service, and [`serve`] runs it on a bound listener until a shutdown future
-//!   completes.
+//!   `hac.v1.Learner` service, and [`serve`] runs it, with status, health and reflection, on a
+//!   bound listener until a shutdown future completes.
+//! - `status`: [`StatusGrpc`], the `hac.v1.Status` service over any [`StatusSource`] (the
+//!   learner; an actor daemon's [`ActorNodeStatus`]).
+//! - `ops`: [`Health`] (`grpc.health.v1`), reflection, the token check and TLS
+//!   ([`ServerSecurity`]) shared by every server, and [`serve_status`], an actor daemon's own
+//!   status server.
 //! - `client`: [`GrpcLink`], the [`ActorLink`](crate::ActorLink) of actors on any host: a small
 //!   tokio runtime of its own behind the trait's blocking methods, with a window of unacknowledged
 //!   messages, reconnects with backoff, and re-registration after a learner restart.
@@ -21,20 +27,28 @@
 //! | `stale_incarnation`, `finished`                         | `FAILED_PRECONDITION` |
 //! | `sequence_gap`                                          | `OUT_OF_RANGE`        |
 //! | `wrong_role`                                            | `PERMISSION_DENIED`   |
+//! | `unauthenticated` (token missing or wrong; any service but health) | `UNAUTHENTICATED` |
 //!
 //! A refused ingest message ends that actor's stream only; what was acknowledged before it stays
 //! stored. A stream the server ends because it is shutting down gets `UNAVAILABLE` without a
 //! reason (try again later), or `FAILED_PRECONDITION`/`finished` once the run is over.
 
 mod client;
+mod ops;
 mod server;
+mod status;
 
 use hac_learner::RejectReason;
 use tokio::sync::watch;
 use tonic::Status;
 
 pub use client::{ConnectError, GrpcLink, GrpcLinkOptions};
+pub use ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, serve_status};
 pub use server::{LearnerGrpc, ServerOptions, serve};
+pub use status::{
+    ActorNodeStatus, DEFAULT_WATCH_INTERVAL, MIN_WATCH_INTERVAL, StatusGrpc, StatusSource,
+    learner_status, role_name,
+};
 
 /// The status metadata key naming the [`RejectReason`] of a refusal.
 pub const REJECT_REASON_KEY: &str = "hac-reject-reason";

@@ -1,10 +1,13 @@
-//! [`LearnerGrpc`]: the `hac.v1.Learner` service over a shared [`Learner`], and [`serve`].
+//! [`LearnerGrpc`]: the `hac.v1.Learner` service over a shared [`Learner`], and [`serve`], which
+//! serves it with status, health and reflection, behind the token check and TLS if configured.
 //!
 //! Each ingest stream runs in a task of its own: it reads one message, validates it, waits for
 //! room in the learner (the backpressure: the ack is withheld meanwhile, and since the task reads
 //! nothing more, HTTP/2 flow control soon holds the actor's sender too), stores it and queues a
 //! cumulative ack. Acks wait in a short queue; while the actor does not read them, later ones
-//! replace the queued one instead of piling up.
+//! replace the queued one instead of piling up. With a per-actor message rate limit, the task
+//! also sleeps for what [`Learner::throttle`] says before taking a message: the same
+//! backpressure, so nothing is refused.
 
 use std::error::Error as _;
 use std::future::Future;
@@ -17,19 +20,22 @@ use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataValue;
-use tonic::transport::server::TcpIncoming;
 use tonic::{Code, Request, Response, Status, Streaming};
 
+use super::ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, router, serve_router};
+use super::status::StatusGrpc;
 use super::{REJECT_REASON_KEY, until_set};
 
 /// Transport settings of the learner's gRPC server.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct ServerOptions {
     /// Largest message accepted, in bytes (after decompression); larger ones are refused with
     /// `RESOURCE_EXHAUSTED` and counted as `oversized`. Also the largest weights message sent.
     pub max_message_bytes: usize,
     /// How long [`serve`] waits, once shut down, for connections to close before returning.
     pub drain_timeout: Duration,
+    /// The bearer token and TLS (default: neither).
+    pub security: ServerSecurity,
 }
 
 impl Default for ServerOptions {
@@ -37,10 +43,13 @@ impl Default for ServerOptions {
         Self {
             max_message_bytes: 64 << 20,
             drain_timeout: Duration::from_secs(5),
+            security: ServerSecurity::default(),
         }
     }
 }
 
+/// This transport's name in status.
+const TRANSPORT: &str = "grpc";
 /// Acks queued per ingest stream before later ones replace the last queued one.
 const ACK_QUEUE: usize = 4;
 /// Weights messages queued per watcher (each is a whole model).
@@ -85,43 +94,56 @@ impl LearnerGrpc {
     }
 }
 
-/// Serves `learner` on `listener` until `shutdown` completes; then ends every open stream, stops
-/// accepting connections and waits up to `options.drain_timeout` for the open ones to close.
+/// Serves `learner` on `listener` until `shutdown` completes: `hac.v1.Learner`, `hac.v1.Status`,
+/// health and reflection, behind `options.security`. Health is `SERVING` from the start until
+/// the run is finished (the learner then serves only its final weights) or `shutdown`
+/// completes. Then ends every open stream, stops accepting connections and waits up to
+/// `options.drain_timeout` for the open ones to close.
 pub async fn serve(
     learner: Arc<Learner>,
     listener: TcpListener,
     options: ServerOptions,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), tonic::transport::Error> {
-    let service = LearnerGrpc::new(learner);
-    let closer = service.clone();
-    let (drain_tx, mut drain_rx) = watch::channel(false);
+    let service = LearnerGrpc::new(learner.clone());
+    let health = Health::new(LEARNER_SERVICE).await;
+    let status = StatusGrpc::new(learner.clone(), service.closing.subscribe());
+    let counter = learner.clone();
+    let on_refused: Arc<dyn Fn() + Send + Sync> =
+        Arc::new(move || counter.count_rejection(RejectReason::Unauthenticated));
+    let router = router(
+        &options.security,
+        Some(on_refused),
+        &health,
+        &[LEARNER_SERVICE, STATUS_SERVICE],
+    )?
+    .add_service(status.into_service())
+    .add_service(service.clone().into_service(&options));
+
+    let (stopping_tx, mut stopping) = watch::channel(false);
+    let reporter = {
+        let health = health.clone();
+        let mut weights = learner.weights().subscribe();
+        async move {
+            health.set_serving(true).await;
+            tokio::select! {
+                // An error: the weights cell is gone, so is the run.
+                _ = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)) => {}
+                () = until_set(&mut stopping) => {}
+            }
+            health.set_serving(false).await;
+        }
+    };
+    let reporter = tokio::spawn(reporter);
     let signal = async move {
         shutdown.await;
-        closer.close();
-        drain_tx.send_replace(true);
+        stopping_tx.send_replace(true);
+        health.set_serving(false).await;
+        service.close();
     };
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let server = tonic::transport::Server::builder()
-        .add_service(service.into_service(&options))
-        .serve_with_incoming_shutdown(incoming, signal);
-    let drain_timeout = options.drain_timeout;
-    let drained = async move {
-        // The sender lives in the server future, which this races with: an error here means that
-        // future is gone, and the select has already finished.
-        if drain_rx.wait_for(|&draining| draining).await.is_ok() {
-            tokio::time::sleep(drain_timeout).await;
-        } else {
-            std::future::pending::<()>().await;
-        }
-    };
-    tokio::select! {
-        result = server => result,
-        () = drained => {
-            tracing::warn!(timeout = ?drain_timeout, "connections still open after the drain timeout");
-            Ok(())
-        }
-    }
+    let served = serve_router(router, listener, options.drain_timeout, signal).await;
+    reporter.abort();
+    served
 }
 
 /// A refusal before it becomes a [`Status`]: the only place that picks status codes.
@@ -219,6 +241,7 @@ impl LearnerGrpc {
     async fn run_ingest(self, mut requests: Streaming<pb::IngestRequest>, acks: AckSender) {
         let mut closing = self.closing.subscribe();
         let mut pending: Option<pb::IngestAck> = None;
+        let mut transport_noted = false;
         let end = loop {
             tokio::select! {
                 biased;
@@ -231,7 +254,12 @@ impl LearnerGrpc {
                     }
                 }
                 next = requests.message() => match next {
-                    Ok(Some(msg)) => match self.accept(msg).await {
+                    Ok(Some(msg)) => {
+                    if !transport_noted {
+                        self.learner.set_actor_transport(&msg.actor_id, TRANSPORT);
+                        transport_noted = true;
+                    }
+                    match self.accept(msg).await {
                         Ok(ack) => {
                             // Cumulative: a later ack covers the queued one.
                             let through = pending.map_or(0, |p| p.acked_through);
@@ -241,7 +269,8 @@ impl LearnerGrpc {
                             });
                         }
                         Err(status) => break Some(status),
-                    },
+                    }
+                    }
                     Ok(None) => break None,
                     Err(status) => match receive_failure(&status) {
                         Some(refusal) => {
@@ -277,6 +306,14 @@ impl LearnerGrpc {
             tracing::warn!(reason = refusal.reason.name(), error = %refusal.message, "ingest message refused");
             self.refuse(refusal)
         })?;
+        let throttled = learner.throttle(&msg.actor_id);
+        if !throttled.is_zero() {
+            let mut closing = self.closing.subscribe();
+            tokio::select! {
+                () = tokio::time::sleep(throttled) => {}
+                () = until_set(&mut closing) => return Err(shutting_down(learner)),
+            }
+        }
         if !learner.has_room() {
             self.wait_for_room().await?;
         }
@@ -394,6 +431,8 @@ impl pb::learner_server::Learner for LearnerGrpc {
         self.learner
             .report_evaluation(&evaluation)
             .map_err(|e| Status::from(Refusal::from(e)))?;
+        self.learner
+            .set_actor_transport(&evaluation.actor_id, TRANSPORT);
         Ok(Response::new(pb::EvaluationAck {}))
     }
 }
