@@ -21,10 +21,16 @@
 //!   replay and rate limiter state, rates over a sliding [`RateWindow`], every actor); the
 //!   per-actor message rate limit ([`Learner::throttle`], a [`TokenBucket`] per actor) is applied
 //!   by the transports before they hand a message to ingest.
+//! - [`Learner::checkpoint`] takes a consistent cut of the whole state (ingest paused, each
+//!   trainer snapshotted between two updates) as a [`LearnerCheckpoint`], and
+//!   [`Learner::resume`] continues from one: the same weights, optimiser state, update counts,
+//!   random streams, counters and curve, with weights versions continuing above the
+//!   checkpoint's (`checkpoint` module; files in safetensors and JSON).
 //!
 //! Transports (in-process, gRPC) are thin adapters over these methods; they live in
 //! `hac-transport`.
 
+mod checkpoint;
 mod published;
 mod rates;
 
@@ -44,9 +50,10 @@ use hac_proto::{
 use hac_replay::{
     RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
 };
-use parking_lot::{Mutex, RwLock};
+use parking_lot::{Condvar, Mutex, RwLock};
 use sha2::{Digest, Sha256};
 
+pub use checkpoint::{CheckpointError, LearnerCheckpoint};
 pub use published::Published;
 pub use rates::{RateWindow, TokenBucket};
 
@@ -101,6 +108,9 @@ pub enum StartError {
         #[source]
         source: RateLimiterConfigError,
     },
+    /// The checkpoint to resume from does not fit this run.
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
 }
 
 /// Why a registration was refused.
@@ -313,6 +323,18 @@ struct Counters {
     throttled_ns: AtomicU64,
 }
 
+/// Checkpoint requests to the trainers, and their answers.
+#[derive(Debug)]
+struct Snapshots {
+    /// Set by a checkpoint for each level; the level's trainer clears it when it answers.
+    requested: Vec<AtomicBool>,
+    /// Each trainer's answer, taken by the checkpoint.
+    taken: Mutex<Vec<Option<checkpoint::LevelSnapshot>>>,
+    served: Condvar,
+    /// One checkpoint at a time.
+    one_at_a_time: Mutex<()>,
+}
+
 #[derive(Debug)]
 struct Shared {
     run: RunConfig,
@@ -332,7 +354,16 @@ struct Shared {
     /// `[transitions, batches, episodes, env_steps, updates of level 0, 1, ...]` over time.
     rates: Mutex<RateWindow>,
     finished: AtomicBool,
+    /// Why the run completed (budget or target reached), if it did; an interrupted run has
+    /// none and can be resumed.
+    completed: Mutex<Option<String>>,
     started: Instant,
+    /// Training time before this process resumed the run.
+    elapsed_before: Duration,
+    /// Ingest and evaluation reports hold it shared; a checkpoint holds it exclusively, which
+    /// pauses them so that counters, replay and curve form one cut.
+    gate: RwLock<()>,
+    snapshots: Snapshots,
 }
 
 /// A running learner; share it with `Arc`. Call [`shutdown`](Self::shutdown) to stop the
@@ -340,7 +371,7 @@ struct Shared {
 #[derive(Debug)]
 pub struct Learner {
     shared: Arc<Shared>,
-    trainers: Mutex<Vec<JoinHandle<LevelLearner>>>,
+    trainers: Mutex<Vec<JoinHandle<(LevelLearner, Rng)>>>,
 }
 
 /// A status snapshot of one level.
@@ -418,18 +449,30 @@ pub struct LearnerStatus {
     pub actors: Vec<ActorStatus>,
 }
 
-/// What [`Learner::shutdown`] hands back.
+/// What [`Learner::shutdown`] hands back; [`FinishedRun::checkpoint`] saves its final state.
 #[derive(Debug)]
 pub struct FinishedRun {
     pub agent: Agent,
     pub curve: Vec<RoundReport>,
     pub status: LearnerStatus,
+    /// The trainers' random streams as they stopped, level 0 first.
+    rngs: Vec<Rng>,
+    shared: Arc<Shared>,
 }
 
 impl Learner {
     /// Validates `run` and `options`, builds replay, rate limiters and networks (seeded from
     /// `run.seed`), starts one trainer thread per level and publishes weights version 1.
     pub fn start(run: RunConfig, options: LearnerOptions) -> Result<Self, StartError> {
+        Self::launch(run, options, None)
+    }
+
+    /// [`start`](Self::start), or with `from`, [`resume`](Self::resume).
+    fn launch(
+        run: RunConfig,
+        options: LearnerOptions,
+        from: Option<&LearnerCheckpoint>,
+    ) -> Result<Self, StartError> {
         run.validate("the run config")?;
         if run.is_tabular() {
             return Err(StartError::Option {
@@ -489,22 +532,36 @@ impl Learner {
         // level.
         let mut root = Rng::seed_from(run.seed);
         let agent = Agent::new(&spec, config, &mut root);
-        let level_rngs: Vec<Rng> = (0..config.levels).map(|_| root.fork()).collect();
-        let learners = agent.into_levels();
+        let mut level_rngs: Vec<Rng> = (0..config.levels).map(|_| root.fork()).collect();
+        let mut learners = agent.into_levels();
+        let run_toml = run.to_toml();
+        let digest = hex(&Sha256::digest(run_toml.as_bytes()));
+        let resumed = match from {
+            Some(checkpoint) => Some(checkpoint.restore_into(
+                &run,
+                &digest,
+                &spec,
+                &mut learners,
+                &mut level_rngs,
+                &replay,
+                &limiters,
+            )?),
+            None => None,
+        };
         let slots = learners
             .iter()
-            .map(|l| {
+            .enumerate()
+            .map(|(level, l)| {
+                // A fresh learner has done 0 updates; a restored one all of its checkpoint's.
                 Mutex::new(LevelSlot {
                     weights: Arc::new(l.actor().to_safetensors()),
-                    weights_updates: 0,
-                    completed: 0,
-                    covered_episodes: 0,
-                    last: None,
+                    weights_updates: l.updates(),
+                    completed: l.updates(),
+                    covered_episodes: resumed.map_or(0, |r| r.covered_episodes(level)),
+                    last: resumed.and_then(|r| r.last_stats(level)),
                 })
             })
             .collect();
-        let run_toml = run.to_toml();
-        let digest = hex(&Sha256::digest(run_toml.as_bytes()));
         let levels = config.levels;
         let batch_size = config.batch_size;
         let shared = Arc::new(Shared {
@@ -516,26 +573,38 @@ impl Learner {
             replay,
             limiters,
             actors: RwLock::default(),
-            next_incarnation: AtomicU64::new(1),
-            slots,
+            next_incarnation: AtomicU64::new(resumed.map_or(1, |r| r.next_incarnation)),
             publisher: Mutex::new(PublisherState {
-                version: 0,
-                published_updates: vec![0; levels],
-                published_episodes: 0,
+                // Resumed: the next snapshot's version is above every version of the checkpoint.
+                version: resumed.map_or(0, |r| r.weights_version),
+                published_updates: learners.iter().map(LevelLearner::updates).collect(),
+                published_episodes: resumed.map_or(0, |r| r.published_episodes),
                 last_publish: Instant::now(),
                 episodes_of: BTreeMap::new(),
             }),
+            slots,
             weights: Published::default(),
             curve: Mutex::new(CurveState {
-                points: Vec::new(),
+                points: resumed.map_or_else(Vec::new, |r| r.curve.clone()),
                 last_at: Instant::now(),
-                last_env_steps: 0,
-                last_updates: 0,
+                last_env_steps: resumed.map_or(0, |r| r.curve_env_steps),
+                last_updates: resumed.map_or(0, |r| r.curve_updates),
             }),
-            counters: Counters::default(),
+            counters: resumed.map_or_else(Counters::default, |r| r.counters.restore()),
             rates: Mutex::new(RateWindow::new(Instant::now(), 4 + levels, RATES_WINDOW)),
             finished: AtomicBool::new(false),
+            completed: Mutex::new(None),
             started: Instant::now(),
+            elapsed_before: resumed.map_or(Duration::ZERO, |r| {
+                Duration::try_from_secs_f64(r.elapsed_s).unwrap_or_default()
+            }),
+            gate: RwLock::new(()),
+            snapshots: Snapshots {
+                requested: (0..levels).map(|_| AtomicBool::new(false)).collect(),
+                taken: Mutex::new(vec![None; levels]),
+                served: Condvar::new(),
+                one_at_a_time: Mutex::new(()),
+            },
         });
         shared.publish(false);
         let trainers = learners
@@ -555,6 +624,7 @@ impl Learner {
             env = %shared.run.env,
             levels,
             digest = %shared.digest,
+            resumed_from_version = resumed.map(|r| r.weights_version),
             "learner started"
         );
         Ok(Self {
@@ -714,7 +784,10 @@ impl Learner {
     /// Validates and stores one message of an actor's ingest stream; see the crate docs. On
     /// error nothing is stored and the rejection is counted.
     pub fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
-        let result = self.shared.ingest(msg);
+        let result = {
+            let _running = self.shared.gate.read();
+            self.shared.ingest(msg)
+        };
         if let Err(e) = &result {
             self.count_rejection(e.reason());
         }
@@ -734,7 +807,10 @@ impl Learner {
     /// Adds an evaluator's (or a self-evaluating trainer's) greedy test results to the learning
     /// curve, at the episode count of the weights version they used; may finish the run.
     pub fn report_evaluation(&self, evaluation: &Evaluation) -> Result<(), IngestError> {
-        let result = self.shared.report_evaluation(evaluation);
+        let result = {
+            let _running = self.shared.gate.read();
+            self.shared.report_evaluation(evaluation)
+        };
         if let Err(e) = &result {
             self.count_rejection(e.reason());
         }
@@ -776,20 +852,27 @@ impl Learner {
         self.shared.status()
     }
 
+    /// Training time of the run, including the time before a resume.
+    pub fn elapsed(&self) -> Duration {
+        self.shared.elapsed()
+    }
+
     /// Finishes the run (if it is not already), waits for the trainer threads and returns the
     /// trained agent with the curve and final status.
     pub fn shutdown(self) -> FinishedRun {
         self.shared.finish("shutdown");
-        let levels: Vec<LevelLearner> = self
+        let (levels, rngs): (Vec<LevelLearner>, Vec<Rng>) = self
             .trainers
             .lock()
             .drain(..)
             .map(|t| t.join().expect("a trainer thread panicked"))
-            .collect();
+            .unzip();
         FinishedRun {
             agent: Agent::from_levels(levels),
             curve: self.curve(),
             status: self.status(),
+            rngs,
+            shared: self.shared.clone(),
         }
     }
 }
@@ -945,7 +1028,7 @@ impl Shared {
                 episodes,
                 env_steps,
                 success_rate,
-                elapsed_s: self.started.elapsed().as_secs_f64(),
+                elapsed_s: self.elapsed().as_secs_f64(),
                 env_steps_per_s: rate(env_steps.saturating_sub(curve.last_env_steps)),
                 updates_per_s: rate(updates.saturating_sub(curve.last_updates)),
                 levels: status
@@ -979,27 +1062,31 @@ impl Shared {
             .stop_at
             .is_some_and(|target| success_rate >= target)
         {
-            self.finish("target success rate reached");
+            self.complete("target success rate reached");
         } else if episodes >= self.run.episodes {
-            self.finish("episode budget trained and evaluated");
+            self.complete("episode budget trained and evaluated");
         }
         Ok(())
     }
 
     /// The trainer thread of `level`: takes each update the rate limiter grants, offers the
-    /// weights for publication when caught up or every `publish_every_updates`; returns the
-    /// trained networks once the limiter is closed.
+    /// weights for publication when caught up or every `publish_every_updates`, answers
+    /// checkpoint requests between updates; returns the trained networks and its random stream
+    /// once the limiter is closed.
     fn train_level(
         &self,
         level: usize,
         mut learner: LevelLearner,
         mut rng: Rng,
         mut batch: Batch,
-    ) -> LevelLearner {
+    ) -> (LevelLearner, Rng) {
         let limiter = &self.limiters[level];
         let table = self.replay.table(level);
         let every = self.options.publish_every_updates;
         loop {
+            if self.snapshots.requested[level].load(Ordering::Acquire) {
+                self.serve_snapshot(level, &learner, &rng);
+            }
             match limiter.acquire_update(Duration::from_millis(50)) {
                 Ok(()) => {}
                 Err(WaitError::TimedOut) => {
@@ -1038,7 +1125,7 @@ impl Shared {
             }
             self.maybe_publish();
         }
-        learner
+        (learner, rng)
     }
 
     /// Publishes a snapshot if coverage grew, every level has fresh weights, or some level's
@@ -1069,7 +1156,7 @@ impl Shared {
             covered
         };
         if covered >= self.run.episodes && !self.has_evaluator() {
-            self.finish("episode budget trained");
+            self.complete("episode budget trained");
         }
     }
 
@@ -1110,6 +1197,18 @@ impl Shared {
             run_finished,
         };
         self.weights.publish(Arc::new(snapshot));
+    }
+
+    /// Finishes a run that reached its end (not an interruption): it cannot be resumed.
+    fn complete(&self, why: &str) {
+        if !self.finished.load(Ordering::Acquire) {
+            self.completed.lock().get_or_insert_with(|| why.to_string());
+        }
+        self.finish(why);
+    }
+
+    fn elapsed(&self) -> Duration {
+        self.elapsed_before + self.started.elapsed()
     }
 
     fn finish(&self, why: &str) {

@@ -3,7 +3,9 @@
 //! safetensors keeps metadata in a `HashMap`, whose order (and so the file's bytes) would change
 //! from run to run. To make equal states give equal files, all metadata goes into the single
 //! entry [`METADATA_KEY`] as sorted `key=value` pairs separated by `;` (keys and values here are
-//! names and numbers, which contain neither character).
+//! names and numbers, which contain neither character). Files meant for other programs (the
+//! exported policy) keep one plain metadata entry per key instead
+//! ([`TensorWriter::finish_plain`]); the reader accepts both.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
@@ -72,6 +74,14 @@ impl TensorWriter {
         // Only a header above safetensors' 100 MB limit can fail, far beyond any network here.
         safetensors::serialize(tensors, Some(metadata)).expect("serialising in-memory f32 tensors")
     }
+
+    /// [`finish`](Self::finish) with every metadata entry as its own safetensors metadata key,
+    /// as other tools expect to find them.
+    pub fn finish_plain(self) -> Vec<u8> {
+        let tensors = self.tensors.iter().map(|(name, t)| (name.as_str(), t));
+        let metadata: HashMap<String, String> = self.metadata.into_iter().collect();
+        safetensors::serialize(tensors, Some(metadata)).expect("serialising in-memory f32 tensors")
+    }
 }
 
 /// A parsed safetensors buffer with typed, shape-checked accessors.
@@ -84,18 +94,17 @@ impl<'a> TensorReader<'a> {
     pub fn new(bytes: &'a [u8]) -> Result<Self, NnError> {
         let file = SafeTensors::deserialize(bytes)?;
         let (_, header) = SafeTensors::read_metadata(bytes)?;
-        let metadata = header
-            .metadata()
-            .as_ref()
-            .and_then(|m| m.get(METADATA_KEY))
-            .map(|pairs| {
-                pairs
+        let metadata = match header.metadata().as_ref() {
+            Some(m) => match m.get(METADATA_KEY) {
+                Some(pairs) => pairs
                     .split(';')
                     .filter_map(|pair| pair.split_once('='))
                     .map(|(k, v)| (k.to_string(), v.to_string()))
-                    .collect()
-            })
-            .unwrap_or_default();
+                    .collect(),
+                None => m.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+            },
+            None => BTreeMap::new(),
+        };
         Ok(Self { file, metadata })
     }
 
@@ -145,6 +154,11 @@ impl<'a> TensorReader<'a> {
             });
         }
         Ok(())
+    }
+
+    /// Every metadata entry.
+    pub fn metadata(&self) -> &BTreeMap<String, String> {
+        &self.metadata
     }
 
     /// Metadata entry `key`, parsed.

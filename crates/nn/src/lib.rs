@@ -8,6 +8,7 @@
 //! - [`critic`]: [`Critic`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
 //! - [`learner`]: [`LevelLearner`], one level's DDPG-style update (critic step, then actor step
 //!   through the updated critic), optional target networks, whole-state checkpoints.
+//! - [`policy`]: [`Policy`], every level's actor in one self-contained file for use elsewhere.
 //! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
 //!   the thin-matrix loops; `checkpoint`: safetensors reading and writing.
 //!
@@ -23,6 +24,7 @@ mod error;
 mod kernels;
 pub mod learner;
 pub mod mlp;
+pub mod policy;
 #[cfg(test)]
 mod testing;
 
@@ -32,3 +34,4 @@ pub use critic::Critic;
 pub use error::NnError;
 pub use learner::{LearnerConfig, LevelLearner, UpdateStats};
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
+pub use policy::Policy;

@@ -2,7 +2,8 @@
 //!
 //! - [`ReplayTable`] (in `table`): one level's replay. `S` shards, each a ring buffer behind its
 //!   own lock, so ingest runs in parallel; the sampler draws a batch across shards in proportion
-//!   to their fill, straight into a preallocated [`Batch`](hac_core::Batch).
+//!   to their fill, straight into a preallocated [`Batch`](hac_core::Batch); its contents save to
+//!   and restore from safetensors for checkpoints (`table::snapshot`).
 //! - `ring`: a shard's storage, a fixed-capacity FIFO ring in structure-of-arrays `f32` layout
 //!   (the same layout as `Batch`, so sampling copies contiguous slices).
 //! - [`RateLimiter`] (in `rate_limiter`): one level's updates-per-episode ratio, shared by ingest
@@ -16,9 +17,10 @@ mod ring;
 mod table;
 
 pub use rate_limiter::{
-    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, WaitError,
+    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterCounts, RateLimiterStatus,
+    WaitError,
 };
-pub use table::{DimensionMismatch, ReplayTable, SampleError};
+pub use table::{DimensionMismatch, ReplayTable, SampleError, SnapshotError};
 
 use hac_core::{AgentConfig, EnvSpec, Transition, TransitionSink};
 

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 use hac_core::AgentConfig;
 use parking_lot::{Condvar, Mutex};
+use serde::{Deserialize, Serialize};
 
 /// One level's rate-limiter settings; see [`RateLimiter`] for how they are used.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -136,12 +137,26 @@ pub struct RateLimiterStatus {
     pub closed: bool,
 }
 
+/// The counts that define a [`RateLimiter`]'s state, saved in checkpoints:
+/// [`RateLimiter::counts`] and [`RateLimiter::restore`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct RateLimiterCounts {
+    pub episodes: u64,
+    pub credited_episodes: u64,
+    pub inserts: u64,
+    pub updates: u64,
+    /// Updates owed once but dropped by a restore that forgave them (see
+    /// [`RateLimiter::restore`]); 0 otherwise.
+    pub forgiven_updates: f64,
+}
+
 #[derive(Debug, Default)]
 struct State {
     episodes: u64,
     credited_episodes: u64,
     inserts: u64,
     updates: u64,
+    forgiven_updates: f64,
     trainer_blocked: Duration,
     ingest_refused: u64,
     ingest_blocked: Duration,
@@ -151,9 +166,10 @@ struct State {
 }
 
 impl State {
-    /// `C * r`: the updates the credited episodes have earned.
+    /// `C * r`: the updates the credited episodes have earned (less those forgiven at a
+    /// restore).
     fn earned(&self, r: f64) -> f64 {
-        self.credited_episodes as f64 * r
+        self.credited_episodes as f64 * r - self.forgiven_updates
     }
 
     fn deficit(&self, r: f64) -> f64 {
@@ -343,6 +359,37 @@ impl RateLimiter {
         self.state.lock().closed
     }
 
+    /// The counts to save in a checkpoint (read under one lock, so they agree with each other).
+    pub fn counts(&self) -> RateLimiterCounts {
+        let state = self.state.lock();
+        RateLimiterCounts {
+            episodes: state.episodes,
+            credited_episodes: state.credited_episodes,
+            inserts: state.inserts,
+            updates: state.updates,
+            forgiven_updates: state.forgiven_updates,
+        }
+    }
+
+    /// Continues from `counts` (of a limiter with the same config), before anyone uses this one.
+    ///
+    /// With `forgive_owed`, the updates owed at that point are dropped, so the deficit restarts
+    /// at 0: a learner resumed without its replay has nothing to sample them from. Pass
+    /// `counts.inserts = 0` as well in that case, so that new episodes earn updates again only
+    /// once the empty table holds `min_size_to_update` transitions, as at the start of a run.
+    pub fn restore(&self, counts: RateLimiterCounts, forgive_owed: bool) {
+        let mut state = self.state.lock();
+        state.episodes = counts.episodes;
+        state.credited_episodes = counts.credited_episodes;
+        state.inserts = counts.inserts;
+        state.updates = counts.updates;
+        state.forgiven_updates = counts.forgiven_updates;
+        if forgive_owed {
+            let owed = state.deficit(self.config.updates_per_episode).max(0.0);
+            state.forgiven_updates += owed;
+        }
+    }
+
     pub fn status(&self) -> RateLimiterStatus {
         let state = self.state.lock();
         RateLimiterStatus {
@@ -400,6 +447,49 @@ mod tests {
             granted += 1;
         }
         granted
+    }
+
+    #[test]
+    fn a_restored_limiter_continues_and_a_forgiving_restore_owes_nothing() {
+        let a = limiter(3.0, 6.0, 2);
+        a.record_insert(2);
+        a.record_episode();
+        a.record_episode();
+        assert_eq!(a.acquire_update(Duration::ZERO), Ok(()));
+        let counts = a.counts();
+        assert_eq!(
+            (counts.episodes, counts.credited_episodes, counts.updates),
+            (2, 2, 1)
+        );
+
+        let b = limiter(3.0, 6.0, 2);
+        b.restore(counts, false);
+        assert_eq!(b.counts(), counts);
+        assert_eq!(drain(&b), 5, "the 5 updates still owed");
+
+        let c = limiter(3.0, 6.0, 2);
+        c.restore(
+            RateLimiterCounts {
+                inserts: 0,
+                ..counts
+            },
+            true,
+        );
+        assert_eq!(c.status().deficit, 0.0);
+        assert_eq!(drain(&c), 0, "nothing owed after forgiving");
+        c.record_insert(1);
+        c.record_episode();
+        assert_eq!(drain(&c), 0, "not credited before the table holds M again");
+        c.record_insert(1);
+        c.record_episode();
+        assert_eq!(drain(&c), 3);
+        let status = c.status();
+        assert_eq!((status.episodes, status.updates), (4, 4));
+        assert!(c.try_accept());
+        // Saved and restored again, the forgiven updates stay forgiven.
+        let d = limiter(3.0, 6.0, 2);
+        d.restore(c.counts(), false);
+        assert_eq!(drain(&d), 0);
     }
 
     #[test]

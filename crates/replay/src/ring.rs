@@ -40,6 +40,22 @@ impl Ring {
         self.len
     }
 
+    /// The row the next push writes.
+    pub(crate) fn next(&self) -> usize {
+        self.next
+    }
+
+    /// Moves the write position of a full ring (restoring a snapshot).
+    pub(crate) fn set_next(&mut self, next: usize) {
+        assert!(
+            next < self.capacity && (self.len == self.capacity || next == self.len),
+            "ring write position {next} with {} of {} rows",
+            self.len,
+            self.capacity
+        );
+        self.next = next;
+    }
+
     /// Appends `t`, overwriting the oldest row once the ring is full. The caller has checked the
     /// dimensions.
     pub(crate) fn push(&mut self, t: &Transition<'_>) {
@@ -67,6 +83,23 @@ impl Ring {
             self.terminals[i] = terminal;
         }
         self.next = (self.next + 1) % self.capacity;
+    }
+
+    /// Every field as `(name, values, width)`, in [`Batch`]'s order.
+    pub(crate) fn fields(&self) -> [(&'static str, &[f32], usize); 6] {
+        let LevelDims {
+            state,
+            action,
+            goal,
+        } = self.dims;
+        [
+            ("states", &self.states, state),
+            ("actions", &self.actions, action),
+            ("rewards", &self.rewards, 1),
+            ("next_states", &self.next_states, state),
+            ("goals", &self.goals, goal),
+            ("terminals", &self.terminals, 1),
+        ]
     }
 
     /// Copies rows `rows` into samples `first..first + rows.len()` of `batch`, one field at a

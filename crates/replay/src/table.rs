@@ -8,6 +8,10 @@ use parking_lot::Mutex;
 
 use crate::ring::Ring;
 
+mod snapshot;
+
+pub use snapshot::SnapshotError;
+
 /// A transition whose field does not have the table's dimension.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("transition {field} has {actual} values, expected {expected}")]

@@ -24,6 +24,20 @@ struct FileConfig {
     replay_shards: Option<usize>,
     agent: Option<toml::Table>,
     tabular: Option<toml::Table>,
+    /// The daemons' tables, checked key by key against their flags by [`crate::daemon`]; the
+    /// run itself does not read them.
+    #[serde(rename = "learner")]
+    _learner: Option<toml::Table>,
+    #[serde(rename = "actor")]
+    _actor: Option<toml::Table>,
+}
+
+/// Checks a config file's top level: only run keys, `[agent]`, `[tabular]` and the daemons'
+/// tables, with values of the right types (the rest is checked by [`resolve`] and
+/// [`crate::daemon`]).
+pub(crate) fn check_top_level(table: &toml::Table) -> Result<()> {
+    table.clone().try_into::<FileConfig>()?;
+    Ok(())
 }
 
 /// Values given on the command line or through `HAC_*` variables (clap reads both).

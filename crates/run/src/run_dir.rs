@@ -5,7 +5,8 @@
 //! - `curve.svg`: the learning curve, redrawn after every round;
 //! - `weights/level<i>.safetensors`: each level's actor and critic (neural agent) or Q table
 //!   (tabular agent, see `hac_tabular::checkpoint`), at the end of training;
-//! - `summary.json`: headline figures (final and best success, episodes to 50% and 90%, time).
+//! - `summary.json`: headline figures (final and best success, episodes to 50% and 90%, time);
+//! - `checkpoints/`: the learner daemon's checkpoints ([`crate::checkpoints`]).
 
 use std::fs::File;
 use std::io::Write as _;
@@ -16,6 +17,7 @@ use hac_agent::{Agent, RoundReport};
 use hac_tabular::TabularAgent;
 use serde::Serialize;
 
+use crate::checkpoints::CheckpointStore;
 use crate::config::RunConfig;
 use crate::plot;
 
@@ -91,30 +93,61 @@ pub struct RunDir {
 
 impl RunDir {
     /// Creates the directory and writes `config.toml` and the CSV header. A directory that
-    /// already holds a run is refused unless `overwrite`, so results are never lost by accident.
+    /// already holds a run is refused unless `overwrite`, so results are never lost by accident;
+    /// overwriting also removes the old run's checkpoints, which a resume would otherwise find.
     pub fn create(path: &Path, config: &RunConfig, overwrite: bool) -> Result<Self> {
-        if !overwrite && path.join("config.toml").exists() {
-            anyhow::bail!(
-                "{} already holds a run; choose another --out or pass --overwrite",
-                path.display()
-            );
+        if path.join("config.toml").exists() {
+            if !overwrite {
+                anyhow::bail!(
+                    "{} already holds a run; choose another --out or pass --overwrite",
+                    path.display()
+                );
+            }
+            CheckpointStore::of_run(path).remove_all()?;
         }
         std::fs::create_dir_all(path)
             .with_context(|| format!("creating run directory {}", path.display()))?;
+        Self::open(path, config, &[])
+    }
+
+    /// Continues the run in `path` from a checkpoint whose learning curve is `curve`:
+    /// `config.toml` is written again, and `curve.csv` and `curve.svg` are rewritten to hold
+    /// exactly `curve` (rows recorded after the checkpoint belong to the weights that were lost
+    /// with it); new rounds append after them.
+    pub fn resume(path: &Path, config: &RunConfig, curve: &[RoundReport]) -> Result<Self> {
+        Self::open(path, config, curve)
+    }
+
+    fn open(path: &Path, config: &RunConfig, curve: &[RoundReport]) -> Result<Self> {
         write_file(
             &path.join("config.toml"),
             toml::to_string(config)?.as_bytes(),
         )?;
         let csv_path = path.join("curve.csv");
-        let mut csv =
-            File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?;
-        writeln!(csv, "{}", RoundReport::csv_header(config.levels))?;
-        Ok(Self {
+        let mut text = RoundReport::csv_header(config.levels);
+        text.push('\n');
+        for report in curve {
+            text += &report.csv_row();
+            text.push('\n');
+        }
+        write_file(&csv_path, text.as_bytes())?;
+        let csv = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&csv_path)
+            .with_context(|| format!("opening {}", csv_path.display()))?;
+        let mut dir = Self {
             path: path.to_path_buf(),
             config: config.clone(),
             csv,
-            curve: Vec::new(),
-        })
+            curve: curve
+                .iter()
+                .map(|r| (r.episodes as f64, r.success_rate as f64))
+                .collect(),
+        };
+        if !curve.is_empty() {
+            dir.draw()?;
+        }
+        Ok(dir)
     }
 
     /// Appends one test round to the CSV and redraws the plot.
@@ -123,6 +156,10 @@ impl RunDir {
         self.csv.flush()?;
         self.curve
             .push((report.episodes as f64, report.success_rate as f64));
+        self.draw()
+    }
+
+    fn draw(&mut self) -> Result<()> {
         let title = format!(
             "{}, {} levels, seed {}",
             self.config.env, self.config.levels, self.config.seed

@@ -2,7 +2,8 @@
 //! ([`hac_actor::run_actor`]) as a trainer (rollouts streamed as transitions) or an evaluator
 //! (greedy test rounds reported to the learning curve).
 //!
-//! [`ActorArgs`] and [`run`] are shared by the `hac-actor` binary and `hac actor`. The actor exits
+//! [`ActorArgs`] and [`run`] are shared by the `hac-actor` binary and `hac actor`; the config
+//! file's `[actor]` table holds the same settings ([`config_section`]). The actor exits
 //! 0 when the learner says the run is finished, after `--max-episodes`, or after SIGINT/SIGTERM
 //! (checked between episodes; unacknowledged messages get `--flush-timeout` to reach the
 //! learner). A second signal exits at once.
@@ -18,8 +19,10 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
+use clap::Args as _;
 use hac_actor::{ActorOptions, run_actor};
 use hac_proto::ActorRole;
+use hac_run::daemon::{ConfigArgs, Section};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
 use hac_transport::{ActorLink, LinkError};
 
@@ -78,6 +81,17 @@ pub struct ActorArgs {
     pub flush_timeout: Duration,
     #[command(flatten)]
     pub ops: ops::OpsArgs,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+/// The actor's table of the config file, `[actor]`: every flag of [`ActorArgs`] but the
+/// command-line-only ones ([`hac_run::daemon`]).
+pub fn config_section() -> Section {
+    Section::of_flags(
+        "actor",
+        ActorArgs::augment_args(clap::Command::new("actor")),
+    )
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -90,6 +104,17 @@ fn seconds(text: &str) -> Result<Duration, String> {
 
 /// Runs one actor until the run finishes, its own limit, or a signal; see the crate docs.
 pub fn run(args: ActorArgs) -> Result<()> {
+    if let Some(path) = &args.config.path {
+        // The run keys are the learner's to use, but a mistake in them is caught here too.
+        hac_run::config::resolve(Some(path), hac_run::config::Overrides::default())?;
+    }
+    if args.config.print {
+        // The run itself comes from the learner at registration.
+        if let Some(table) = &args.config.resolved {
+            print!("{}", table.to_toml());
+        }
+        return Ok(());
+    }
     let hostname = hostname();
     let actor_id = args
         .id

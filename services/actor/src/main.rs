@@ -2,6 +2,7 @@
 
 use clap::Parser;
 use hac_actor_service::ActorArgs;
+use hac_run::daemon::{self, Mount, Section};
 use hac_run::logging::{LogFormat, init_tracing};
 
 #[derive(Debug, Parser)]
@@ -19,9 +20,19 @@ struct Cli {
 }
 
 fn main() {
-    let cli = Cli::parse();
-    init_tracing(cli.log_format);
-    if let Err(e) = hac_actor_service::run(cli.args) {
+    let actor = hac_actor_service::config_section();
+    // This binary does not link the learner: its table is checked by key names.
+    let learner = Section::of_keys("learner", daemon::keys::LEARNER);
+    let mount = Mount {
+        path: &[],
+        section: &actor,
+    };
+    let result = daemon::parse::<Cli>(&[mount], &[&learner]).and_then(|(mut cli, resolved)| {
+        cli.args.config.resolved = resolved;
+        init_tracing(cli.log_format);
+        hac_actor_service::run(cli.args)
+    });
+    if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }

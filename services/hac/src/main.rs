@@ -5,6 +5,8 @@
 //! - `hac eval`: greedy test episodes of a trained run.
 //! - `hac experiment`: a grid of level counts x seeds with mean +- std plots and a summary.
 //! - `hac render`: one greedy episode of a trained run as an animated GIF or PNG frames.
+//! - `hac export`: a trained run's greedy policy as one self-contained safetensors file.
+//! - `hac learner`, `hac actor`: the daemons (the same as `hac-learner`, `hac-actor`).
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
 //! - `hac learner`, `hac actor`: the distributed daemons; `hac status`: a running learner's (or
 //!   actor's) status as a table or JSON, live with `--watch` ([`status_cmd`]).
@@ -18,6 +20,7 @@ mod bench;
 mod bench_grpc;
 mod env_cmd;
 mod experiment;
+mod export;
 mod render;
 mod schedule;
 mod status_cmd;
@@ -34,6 +37,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use hac_actor::train_embedded;
 use hac_agent::{Agent, RoundReport};
+use hac_run::daemon::{self, ConfigFile, Mount};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -62,6 +66,10 @@ enum Command {
     /// Draw one greedy test episode of a trained run: the state, the end goal and every level's
     /// current subgoal, as an animated GIF or a directory of numbered PNG frames.
     Render(render::RenderArgs),
+    /// Write a trained run's greedy policy (every level's actor network, with the spaces and
+    /// bounds it acts in) to one safetensors file for use elsewhere (layout in
+    /// docs/CHECKPOINTS.md).
+    Export(export::ExportArgs),
     /// Inspect the built-in environments.
     #[command(subcommand)]
     Env(EnvCommand),
@@ -203,7 +211,8 @@ struct TrainArgs {
     /// Replay shards per level [default: 1].
     #[arg(long, env = "HAC_REPLAY_SHARDS")]
     replay_shards: Option<usize>,
-    /// TOML config file (top-level keys as these flags, hyperparameters under [agent]).
+    /// TOML config file (top-level keys as these flags, hyperparameters under [agent]; the
+    /// daemons' [learner] and [actor] tables are checked and ignored).
     #[arg(long, env = "HAC_CONFIG")]
     config: Option<PathBuf>,
     /// Override one agent hyperparameter, VALUE in TOML syntax (repeatable), e.g.
@@ -241,8 +250,45 @@ struct EvalArgs {
 }
 
 fn main() {
-    let cli = Cli::parse();
+    let learner = hac_learner_service::config_section();
+    let actor = hac_actor_service::config_section();
+    let daemons = [
+        Mount {
+            path: &["learner"],
+            section: &learner,
+        },
+        Mount {
+            path: &["actor"],
+            section: &actor,
+        },
+    ];
+    let cli = match daemon::parse::<Cli>(&daemons, &[]) {
+        Ok((mut cli, resolved)) => {
+            match &mut cli.command {
+                Command::Learner(args) => args.config.resolved = resolved,
+                Command::Actor(args) => args.config.resolved = resolved,
+                _ => {}
+            }
+            cli
+        }
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(1);
+        }
+    };
     init_tracing(cli.log_format);
+    // `hac train` and `hac experiment` ignore the daemons' tables but check them all the same.
+    let file = match &cli.command {
+        Command::Train(args) => args.config.clone(),
+        Command::Experiment(args) => args.config.clone(),
+        _ => None,
+    };
+    if let Some(path) = file {
+        if let Err(e) = ConfigFile::load(&path).and_then(|f| f.validate(&[&learner, &actor])) {
+            eprintln!("error: {e:#}");
+            std::process::exit(1);
+        }
+    }
     let result = match cli.command {
         Command::Train(args) => train(args),
         Command::Eval(args) => eval(args),
@@ -278,6 +324,7 @@ fn main() {
             json,
         }),
         Command::Render(args) => render::run(&args),
+        Command::Export(args) => export::run(&args),
         Command::Bench(BenchCommand::Weights {
             actors,
             versions,

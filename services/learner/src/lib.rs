@@ -7,17 +7,21 @@
 //! - `run_dir`: what the learner writes (`config.toml`, `curve.csv` as evaluations arrive, and at
 //!   the end `weights/level<i>.safetensors` and `summary.json`).
 //! - [`ops`]: metrics, the per-actor message rate limit, token and TLS flags ([`OpsArgs`]).
+//! - [`checkpoint`]: checkpoints on a timer, on SIGUSR1 and at shutdown; `--resume`.
 //!
-//! Life of a run: validate the config (and token and TLS files), start the learner, bind
-//! `--listen` and print `listening on <addr>` (one line on stdout, for scripts; then
-//! `metrics on <addr>` with `--metrics-listen`), serve (health `SERVING`). When the run finishes
-//! by itself (episode budget or `stop_at`), or on SIGINT/SIGTERM (which finishes the run at
-//! once), health turns `NOT_SERVING` and the learner keeps serving for `--grace-period` so that
-//! actors receive the final weights and stop; then it stops accepting, ends open streams, drains
-//! connections (at most `--drain-timeout`), saves, and exits 0. A second signal exits at once.
+//! Life of a run: validate the config (the whole file: [`config_section`]; token and TLS files),
+//! start the learner (or resume it from a checkpoint), bind `--listen` and print
+//! `listening on <addr>` (one line on stdout, for scripts; then `metrics on <addr>` with
+//! `--metrics-listen`), serve (health `SERVING`), checkpointing as configured. When the run
+//! finishes by itself (episode budget or `stop_at`), or on SIGINT/SIGTERM (which finishes the run
+//! at once), health turns `NOT_SERVING` and the learner keeps serving for `--grace-period` so
+//! that actors receive the final weights and stop; then it stops accepting, ends open streams,
+//! drains connections (at most `--drain-timeout`), saves the run directory and a final
+//! checkpoint, and exits 0. A second signal exits at once.
 
 // The same config resolution as `hac train`, so that every entry point resolves a run identically.
 pub use hac_run::config;
+pub mod checkpoint;
 pub mod ops;
 mod run_dir;
 
@@ -25,11 +29,13 @@ use std::io::Write as _;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{Context, Result};
+use clap::Args as _;
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions};
+use hac_run::daemon::{ConfigArgs, Section};
 use hac_transport::grpc::{ServerOptions, serve};
 use tokio::net::TcpListener;
 use tokio::signal::unix::{Signal, SignalKind, signal};
@@ -37,6 +43,8 @@ use tokio::sync::watch;
 
 use hac_run::run_dir::RunDir;
 pub use ops::OpsArgs;
+
+use crate::checkpoint::{CheckpointArgs, Checkpoints, Start};
 
 /// The learner daemon's flags (also `hac learner`'s).
 #[derive(Debug, clap::Args)]
@@ -59,16 +67,12 @@ pub struct LearnerArgs {
     /// Replay shards per level [default: 1].
     #[arg(long, env = "HAC_REPLAY_SHARDS")]
     pub replay_shards: Option<usize>,
-    /// TOML config file (top-level keys as these flags, hyperparameters under [agent]).
-    #[arg(long, env = "HAC_CONFIG")]
-    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub config: ConfigArgs,
     /// Override one agent hyperparameter, VALUE in TOML syntax (repeatable), e.g.
     /// `--set horizon=20`. Also read from HAC_AGENT_<KEY>.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
-    /// Print the resolved configuration as TOML and exit.
-    #[arg(long)]
-    pub print_config: bool,
     /// Address to serve actors on; port 0 picks a free port. Once bound, the address is printed
     /// on stdout as one line `listening on <addr>`.
     #[arg(long, env = "HAC_LISTEN", default_value = "127.0.0.1:50051")]
@@ -105,6 +109,17 @@ pub struct LearnerArgs {
     pub drain_timeout: Duration,
     #[command(flatten)]
     pub ops: OpsArgs,
+    #[command(flatten)]
+    pub checkpoint: CheckpointArgs,
+}
+
+/// The learner's table of the config file, `[learner]`: every flag of [`LearnerArgs`] but the
+/// run keys and the command-line-only ones ([`hac_run::daemon`]).
+pub fn config_section() -> Section {
+    Section::of_flags(
+        "learner",
+        LearnerArgs::augment_args(clap::Command::new("learner")),
+    )
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -118,7 +133,7 @@ fn seconds(text: &str) -> Result<Duration, String> {
 impl LearnerArgs {
     fn resolve(&self) -> Result<RunConfig> {
         config::resolve(
-            self.config.as_deref(),
+            self.config.path.as_deref(),
             config::Overrides {
                 env: self.env.clone(),
                 levels: self.levels,
@@ -160,8 +175,11 @@ impl LearnerArgs {
 /// Runs the learner daemon until the run finishes or a signal stops it; see the crate docs.
 pub fn run(args: LearnerArgs) -> Result<()> {
     let run = args.resolve()?;
-    if args.print_config {
+    if args.config.print {
         print!("{}", run.to_toml());
+        if let Some(table) = &args.config.resolved {
+            print!("\n{}", table.to_toml());
+        }
         return Ok(());
     }
     let options = args.learner_options(&run)?;
@@ -169,23 +187,63 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
-    let mut dir = RunDir::create(&out, &run, args.overwrite)?;
+    let (learner, mut dir) = match checkpoint::start(&args.checkpoint, &out)? {
+        Start::New { replace } => {
+            let dir = RunDir::create(&out, &run, args.overwrite || replace)?;
+            (Learner::start(run, options)?, dir)
+        }
+        Start::Resume { checkpoint, name } => {
+            let learner =
+                Learner::resume(run.clone(), options, &checkpoint).with_context(|| {
+                    format!(
+                        "resuming from {}",
+                        out.join("checkpoints").join(&name).display()
+                    )
+                })?;
+            tracing::info!(
+                checkpoint = %name,
+                weights_version = checkpoint.weights_version(),
+                episodes = checkpoint.episodes(),
+                updates = ?checkpoint.updates(),
+                evaluations = checkpoint.curve().len(),
+                replay = checkpoint.has_replay(),
+                "resuming the run"
+            );
+            (learner, RunDir::resume(&out, &run, checkpoint.curve())?)
+        }
+        Start::Complete { reason } => {
+            eprintln!(
+                "nothing to resume: the run in {} is complete ({reason})",
+                out.display()
+            );
+            return Ok(());
+        }
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("hac-learner-io")
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let learner = Arc::new(Learner::start(run, options)?);
-    let started = Instant::now();
-    let served = runtime.block_on(serve_run(learner.clone(), &args, server_options, &mut dir));
+    let learner = Arc::new(learner);
+    let mut checkpoints =
+        runtime.block_on(async { Checkpoints::install(&args.checkpoint, &out) })?;
+    let served = runtime.block_on(serve_run(
+        learner.clone(),
+        &args,
+        server_options,
+        &mut dir,
+        &mut checkpoints,
+    ));
     // Ends every task still holding the learner (connections that outlived the drain).
     runtime.shutdown_timeout(Duration::from_secs(1));
     served?;
     let learner = Arc::into_inner(learner).context("the learner is still in use after shutdown")?;
+    let elapsed = learner.elapsed();
     let finished = learner.shutdown();
     run_dir::record_new(&mut dir, &finished.curve)?;
-    let summary = run_dir::finish(&dir, &finished, started.elapsed().as_secs_f64())?;
+    let summary = run_dir::finish(&dir, &finished, elapsed.as_secs_f64())?;
+    checkpoints.write_final(&finished.checkpoint(checkpoints.with_replay()))?;
     tracing::info!(
         episodes = finished.status.episodes,
         transitions = finished.status.transitions,
@@ -226,6 +284,7 @@ async fn serve_run(
     args: &LearnerArgs,
     options: ServerOptions,
     dir: &mut RunDir,
+    checkpoints: &mut Checkpoints,
 ) -> Result<()> {
     let mut signals = Signals::install()?;
     let listener = TcpListener::bind(args.listen)
@@ -289,8 +348,10 @@ async fn serve_run(
             }
             () = grace_over => break,
             _ = tick.tick() => run_dir::record_new(dir, &learner.curve())?,
+            () = checkpoints.step(&learner) => {}
         }
     }
+    checkpoints.settle().await;
     tokio::spawn(async move {
         signals.recv().await;
         tracing::warn!("second signal: exiting at once");

@@ -2,6 +2,7 @@
 
 use clap::Parser;
 use hac_learner_service::LearnerArgs;
+use hac_run::daemon::{self, Mount, Section};
 use hac_run::logging::{LogFormat, init_tracing};
 
 #[derive(Debug, Parser)]
@@ -19,9 +20,19 @@ struct Cli {
 }
 
 fn main() {
-    let cli = Cli::parse();
-    init_tracing(cli.log_format);
-    if let Err(e) = hac_learner_service::run(cli.args) {
+    let learner = hac_learner_service::config_section();
+    // This binary does not link the actor: its table is checked by key names.
+    let actor = Section::of_keys("actor", daemon::keys::ACTOR);
+    let mount = Mount {
+        path: &[],
+        section: &learner,
+    };
+    let result = daemon::parse::<Cli>(&[mount], &[&actor]).and_then(|(mut cli, resolved)| {
+        cli.args.config.resolved = resolved;
+        init_tracing(cli.log_format);
+        hac_learner_service::run(cli.args)
+    });
+    if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }

@@ -8,7 +8,9 @@
 //!   + episodes_ingested + duplicates + rejected`, counting the rejections other than
 //!   `malformed`, `oversized` and `unauthenticated` (those the transport refuses first);
 //! - `batches`, `transitions`: stored; `transitions_in_replay`: the replay tables' insert counters
-//!   (equal to `transitions`); `duplicates`: resends of stored messages, acknowledged and dropped;
+//!   (equal to `transitions`, unless the run resumed from a checkpoint without its replay: then
+//!   they count from the resume); `duplicates`: resends of stored messages, acknowledged and
+//!   dropped;
 //! - `weights_version`, and `rejected`: refused inputs by reason (only reasons that occurred).
 
 use anyhow::Result;

@@ -1,0 +1,48 @@
+//! The keys of the daemons' tables, generated from their clap definitions; do not edit. The
+//! `hac` binary links both daemons and checks both tables against their definitions; a daemon's
+//! own binary checks the other daemon's table against this list. `cargo test -p hac-cli --test
+//! config` fails while the list is out of date; `HAC_BLESS=1` on that command rewrites it.
+
+/// `[learner]`.
+pub const LEARNER: &[&str] = &[
+    "listen",
+    "out",
+    "overwrite",
+    "max_message_bytes",
+    "max_batch_transitions",
+    "publish_every_updates",
+    "max_weights_lag",
+    "grace_period",
+    "drain_timeout",
+    "metrics_listen",
+    "max_actor_messages_per_second",
+    "token_file",
+    "tls_cert",
+    "tls_key",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "checkpoint_replay",
+    "resume",
+];
+
+/// `[actor]`.
+pub const ACTOR: &[&str] = &[
+    "learner",
+    "id",
+    "role",
+    "eval_every",
+    "max_episodes",
+    "batch_transitions",
+    "window",
+    "lockstep",
+    "weights_timeout",
+    "give_up_after",
+    "flush_timeout",
+    "status_listen",
+    "metrics_listen",
+    "token_file",
+    "tls_ca",
+    "tls_domain",
+    "tls_cert",
+    "tls_key",
+];

@@ -1,0 +1,159 @@
+//! `hac export`: a trained run's greedy policy as one self-contained safetensors file
+//! ([`hac_nn::Policy`]; layout and metadata in docs/CHECKPOINTS.md).
+//!
+//! The policy comes from the run's newest valid checkpoint (`<run>/checkpoints/`, written by the
+//! learner daemon; a finished run's last checkpoint holds its final weights), or `--checkpoint
+//! NAME`, or else `weights/` (what `hac train` writes). Neural runs only: a grid world's policy is
+//! its Q tables, already self-contained in `weights/level<i>.safetensors`.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use hac_agent::{Agent, RunConfig};
+use hac_learner::LearnerCheckpoint;
+use hac_nn::Policy;
+use hac_run::checkpoints::CheckpointStore;
+use hac_run::run_dir;
+
+#[derive(Debug, clap::Args)]
+pub struct ExportArgs {
+    /// A run directory (of `hac train` or `hac learner`).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// The policy file to write (safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Export this checkpoint of the run (e.g. ckpt-000004) [default: the newest valid one, or
+    /// weights/ if the run has none].
+    #[arg(long, value_name = "NAME")]
+    pub checkpoint: Option<String>,
+}
+
+/// Where the policy came from.
+struct Source {
+    run: RunConfig,
+    agent: Agent,
+    weights_version: Option<u64>,
+    description: String,
+}
+
+pub fn run(args: &ExportArgs) -> Result<()> {
+    let source = load(args)?;
+    let policy = policy(&source)?;
+    run_dir::write_file(&args.out, &policy.to_safetensors())?;
+    println!(
+        "exported the {}-level {} policy from {} to {}",
+        source.run.levels,
+        source.run.env,
+        source.description,
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn load(args: &ExportArgs) -> Result<Source> {
+    let store = CheckpointStore::of_run(&args.run);
+    let from_checkpoint = |name: String, checkpoint: LearnerCheckpoint| -> Result<Source> {
+        Ok(Source {
+            run: checkpoint.run_config()?,
+            agent: checkpoint.agent()?,
+            weights_version: Some(checkpoint.weights_version()),
+            description: format!("checkpoint {name}"),
+        })
+    };
+    if let Some(name) = &args.checkpoint {
+        let files = store
+            .read(name)
+            .map_err(|e| anyhow::anyhow!("checkpoint {name} is corrupt: {e}"))?;
+        let checkpoint = LearnerCheckpoint::from_files(&files)?;
+        return from_checkpoint(name.clone(), checkpoint);
+    }
+    if let Some(loaded) = store.load_newest(LearnerCheckpoint::from_files)? {
+        for line in loaded.skipped_lines() {
+            eprintln!("warning: {line}");
+        }
+        return from_checkpoint(loaded.name, loaded.value);
+    }
+    let run = RunConfig::load_run(&args.run)?;
+    if run.is_tabular() {
+        bail!(
+            "`{}` is a grid world learned by tabular HAC: its policy is its Q tables, already \
+             self-contained in {}/level<i>.safetensors; export writes neural policies",
+            run.env,
+            run_dir::weights_dir(&args.run).display()
+        );
+    }
+    let env = run.make_env()?;
+    let agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+        .context("loading the run's weights")?;
+    // The learner daemon records the final version in the summary; `hac train` has none.
+    let weights_version = std::fs::read_to_string(args.run.join("summary.json"))
+        .ok()
+        .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+        .and_then(|summary| summary["weights_version"].as_u64());
+    Ok(Source {
+        run,
+        agent,
+        weights_version,
+        description: "weights/".into(),
+    })
+}
+
+/// The policy file's contents: every level's actor and the metadata to run it elsewhere.
+fn policy(source: &Source) -> Result<Policy> {
+    let run = &source.run;
+    let env = run.make_env()?;
+    let spec = env.spec();
+    let list = |values: &[f32]| {
+        values
+            .iter()
+            .map(f32::to_string)
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let mut meta = BTreeMap::new();
+    let mut put = |key: &str, value: String| {
+        meta.insert(key.to_string(), value);
+    };
+    put("env", run.env.clone());
+    put("seed", run.seed.to_string());
+    put("source", source.description.clone());
+    if let Some(version) = source.weights_version {
+        put("weights_version", version.to_string());
+    }
+    put("state_dim", spec.state_dim.to_string());
+    put("action_dim", spec.action_dim().to_string());
+    put("action_low", list(&spec.action_bounds.low));
+    put("action_high", list(&spec.action_bounds.high));
+    put("end_goal_dim", spec.end_goal_dim.to_string());
+    put("end_goal_thresholds", list(&spec.end_goal_thresholds));
+    put("subgoal_dim", spec.subgoal_dim().to_string());
+    put("subgoal_low", list(&spec.subgoal_bounds.low));
+    put("subgoal_high", list(&spec.subgoal_bounds.high));
+    put("subgoal_thresholds", list(&spec.subgoal_thresholds));
+    put("horizon", run.agent.horizon.to_string());
+    put("max_actions", spec.max_actions.to_string());
+    put("activation", "relu".into());
+    put("output", "tanh(y) * output_scale + output_offset".into());
+    for (level, learner) in source.agent.levels().iter().enumerate() {
+        let dims = learner.actor().dims();
+        let bounds = spec.level_action_bounds(level);
+        put(&format!("level{level}.action_dim"), dims.action.to_string());
+        put(&format!("level{level}.action_low"), list(&bounds.low));
+        put(&format!("level{level}.action_high"), list(&bounds.high));
+        put(
+            &format!("level{level}.updates"),
+            learner.updates().to_string(),
+        );
+    }
+    Ok(Policy {
+        actors: source
+            .agent
+            .levels()
+            .iter()
+            .map(|l| l.actor().clone())
+            .collect(),
+        metadata: meta,
+    })
+}

@@ -1,0 +1,202 @@
+//! `hac export`: the exported policy file is self-contained. Loaded with nothing but the
+//! safetensors format and the layout in docs/CHECKPOINTS.md (a plain forward pass written here),
+//! it gives the trained run's actions.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use hac_agent::{Agent, RunConfig};
+use hac_core::Rng;
+use safetensors::SafeTensors;
+
+fn hac(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("the hac binary runs")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hac-export-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+/// One level of the exported policy, read by the documented layout alone.
+struct Level {
+    /// `(weight [out][in], bias [out])` per layer.
+    layers: Vec<(Vec<Vec<f32>>, Vec<f32>)>,
+    scale: Vec<f32>,
+    offset: Vec<f32>,
+}
+
+fn floats(file: &SafeTensors<'_>, name: &str) -> (Vec<usize>, Vec<f32>) {
+    let t = file
+        .tensor(name)
+        .unwrap_or_else(|_| panic!("tensor {name}"));
+    assert_eq!(t.dtype(), safetensors::Dtype::F32, "{name}");
+    let values = t
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (t.shape().to_vec(), values)
+}
+
+fn read_level(file: &SafeTensors<'_>, level: usize) -> Level {
+    let mut layers = Vec::new();
+    while file
+        .tensor(&format!("level{level}.layers.{}.weight", layers.len()))
+        .is_ok()
+    {
+        let l = layers.len();
+        let (shape, w) = floats(file, &format!("level{level}.layers.{l}.weight"));
+        let (_, b) = floats(file, &format!("level{level}.layers.{l}.bias"));
+        let rows = w.chunks_exact(shape[1]).map(<[f32]>::to_vec).collect();
+        layers.push((rows, b));
+    }
+    Level {
+        layers,
+        scale: floats(file, &format!("level{level}.output_scale")).1,
+        offset: floats(file, &format!("level{level}.output_offset")).1,
+    }
+}
+
+/// `tanh(W_L relu(... relu(W_1 x + b_1) ...) + b_L) * scale + offset`, `x = [state, goal]`.
+fn act(level: &Level, state: &[f32], goal: &[f32]) -> Vec<f32> {
+    let mut h: Vec<f32> = state.iter().chain(goal).copied().collect();
+    for (i, (w, b)) in level.layers.iter().enumerate() {
+        let z: Vec<f32> = w
+            .iter()
+            .zip(b)
+            .map(|(row, bias)| row.iter().zip(&h).map(|(a, x)| a * x).sum::<f32>() + bias)
+            .collect();
+        let last = i + 1 == level.layers.len();
+        h = if last {
+            z
+        } else {
+            z.into_iter().map(|v| v.max(0.0)).collect()
+        };
+    }
+    h.iter()
+        .zip(&level.scale)
+        .zip(&level.offset)
+        .map(|((y, s), c)| y.tanh() * s + c)
+        .collect()
+}
+
+fn train(out: &Path) {
+    let o = hac(&[
+        "train",
+        "--env",
+        "pendulum",
+        "--levels",
+        "2",
+        "--episodes",
+        "10",
+        "--set",
+        "test_episodes=2",
+        "--set",
+        "exploration_episodes=10",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn an_exported_policy_reproduces_the_runs_actions_without_this_project() {
+    let dir = scratch("pendulum");
+    let run = dir.join("run");
+    train(&run);
+    let file = dir.join("policy.safetensors");
+    let o = hac(&[
+        "export",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("from weights/"));
+
+    let bytes = std::fs::read(&file).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let meta: HashMap<String, String> = header.metadata().clone().unwrap();
+    assert_eq!(meta["format"], "hac/policy");
+    assert_eq!(meta["env"], "pendulum");
+    let levels: usize = meta["levels"].parse().unwrap();
+    assert_eq!(levels, 2);
+
+    // The run's own networks, through the project's code.
+    let config = RunConfig::load_run(&run).unwrap();
+    let env = hac_envs::make("pendulum").unwrap();
+    let agent = Agent::load(&run.join("weights"), env.spec(), &config.agent).unwrap();
+    let mut rng = Rng::seed_from(11);
+    for level in 0..levels {
+        let exported = read_level(&st, level);
+        let state_dim: usize = meta[&format!("level{level}.state_dim")].parse().unwrap();
+        let goal_dim: usize = meta[&format!("level{level}.goal_dim")].parse().unwrap();
+        let action_dim: usize = meta[&format!("level{level}.action_dim")].parse().unwrap();
+        let low: Vec<f32> = meta[&format!("level{level}.action_low")]
+            .split(',')
+            .map(|v| v.parse().unwrap())
+            .collect();
+        let high: Vec<f32> = meta[&format!("level{level}.action_high")]
+            .split(',')
+            .map(|v| v.parse().unwrap())
+            .collect();
+        let mut actor = agent.levels()[level].actor().clone();
+        for _ in 0..5 {
+            let state: Vec<f32> = (0..state_dim).map(|_| rng.uniform(-2.0, 2.0)).collect();
+            let goal: Vec<f32> = (0..goal_dim).map(|_| rng.uniform(-2.0, 2.0)).collect();
+            let mut expected = vec![0.0; action_dim];
+            actor.act(&state, &goal, &mut expected);
+            let got = act(&exported, &state, &goal);
+            assert_eq!(got.len(), action_dim);
+            for d in 0..action_dim {
+                assert!(
+                    (got[d] - expected[d]).abs() <= 1e-4 * (1.0 + expected[d].abs()),
+                    "level {level} dim {d}: {got:?} vs {expected:?}"
+                );
+                assert!(low[d] - 1e-5 <= got[d] && got[d] <= high[d] + 1e-5);
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn export_refuses_grid_worlds_and_names_the_q_tables() {
+    let dir = scratch("four-rooms");
+    let run = dir.join("run");
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--episodes",
+        "5",
+        "--set",
+        "test_episodes=2",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = hac(&[
+        "export",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        dir.join("p.safetensors").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("tabular") && stderr.contains("Q tables"),
+        "{stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
