@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use hac_agent::RunConfig;
-use hac_core::Batch;
+use hac_core::{Batch, LevelDims};
 use hac_learner::{Learner, LearnerOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 use serde::Serialize;
@@ -77,8 +77,7 @@ pub fn bench_run() -> Result<RunConfig> {
 }
 
 /// A full level-0 batch of `len` plausible pendulum transitions.
-pub fn level0_batch(learner: &Learner, len: usize) -> Batch {
-    let dims = learner.dims()[0];
+pub fn level0_batch(dims: LevelDims, len: usize) -> Batch {
     let mut batch = Batch::zeros(dims, len);
     for (i, x) in batch.states.iter_mut().enumerate() {
         *x = (i % 17) as f32 * 0.1 - 0.8;
@@ -206,7 +205,7 @@ fn print_report(r: &IngestReport, json: bool) -> Result<()> {
 /// Senders on their own threads calling the learner directly; a call's return is its ack.
 fn in_process(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestReport> {
     let stop = Arc::new(AtomicBool::new(false));
-    let batch = level0_batch(learner, bench.batch);
+    let batch = level0_batch(learner.dims()[0], bench.batch);
     let floats = batch.states.len() * 2 + batch.actions.len() + batch.goals.len() + 2 * batch.len;
     let mut senders = Vec::new();
     let start = Arc::new(std::sync::Barrier::new(bench.actors + 1));

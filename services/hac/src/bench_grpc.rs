@@ -57,7 +57,9 @@ impl Drop for Server {
     }
 }
 
-async fn client(url: &str) -> Result<pb::learner_client::LearnerClient<tonic::transport::Channel>> {
+pub(crate) async fn client(
+    url: &str,
+) -> Result<pb::learner_client::LearnerClient<tonic::transport::Channel>> {
     Ok(pb::learner_client::LearnerClient::connect(url.to_string())
         .await
         .with_context(|| format!("connecting to {url}"))?
@@ -65,7 +67,7 @@ async fn client(url: &str) -> Result<pb::learner_client::LearnerClient<tonic::tr
         .max_encoding_message_size(64 << 20))
 }
 
-async fn register(
+pub(crate) async fn register(
     client: &mut pb::learner_client::LearnerClient<tonic::transport::Channel>,
     id: &str,
 ) -> Result<u64> {
@@ -88,7 +90,7 @@ struct SenderResult {
 /// message to the stream until the cumulative ack covering it.
 pub fn ingest(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestReport> {
     let server = Server::start(learner, 2)?;
-    let batch = level0_batch(learner, bench.batch);
+    let batch = level0_batch(learner.dims()[0], bench.batch);
     let floats = batch.states.len() * 2 + batch.actions.len() + batch.goals.len() + 2 * batch.len;
     let message = encode_batch(0, 1, &batch);
     let stop = Arc::new(AtomicBool::new(false));

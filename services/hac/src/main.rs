@@ -8,8 +8,10 @@
 //! - `hac export`: a trained run's greedy policy as one self-contained safetensors file.
 //! - `hac learner`, `hac actor`: the daemons (the same as `hac-learner`, `hac-actor`).
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
-//! - `hac learner`, `hac actor`: the distributed daemons; `hac status`: a running learner's (or
-//!   actor's) status as a table or JSON, live with `--watch` ([`status_cmd`]).
+//! - `hac bench ...`: ingest throughput, weights fan-out, many connections held for a long time.
+//! - `hac learner`, `hac actor`: the daemons of a distributed run; `hac status`: a running
+//!   learner's (or actor's) status as a table or JSON, live with `--watch` ([`status_cmd`]);
+//!   `hac health`: one gRPC health check, for container health checks.
 //!
 //! Modules: [`config`] resolves the run configuration from every source, [`registry`] names
 //! every environment, [`plot`] draws SVG learning curves, [`run_dir`] owns the layout of a run
@@ -17,10 +19,12 @@
 //! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
 mod bench;
+mod bench_connections;
 mod bench_grpc;
 mod env_cmd;
 mod experiment;
 mod export;
+mod health;
 mod render;
 mod schedule;
 mod status_cmd;
@@ -31,7 +35,7 @@ use hac_run::{config, plot, registry, run_dir};
 
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -84,6 +88,9 @@ enum Command {
     /// losses, replay fill per shard, rates, rejections, actors and the latest evaluations; a
     /// table, JSON with --json, refreshed live with --watch.
     Status(status_cmd::StatusArgs),
+    /// Ask a learner or actor whether it is serving (the standard gRPC health check); exits 0
+    /// when SERVING, 1 otherwise.
+    Health(health::HealthArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -124,6 +131,32 @@ enum BenchCommand {
         #[arg(long, default_value_t = 20)]
         interval_ms: u64,
         /// Print one JSON object instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Many lightweight actors held by one learner process: each opens its own gRPC connection,
+    /// registers, watches weights and streams small pre-made batches; the learner's resident
+    /// memory (VmRSS, VmHWM) is sampled throughout.
+    Connections {
+        /// Simulated actors, each with its own connection.
+        #[arg(long, default_value_t = 256)]
+        actors: usize,
+        /// How long to hold them.
+        #[arg(long, default_value_t = 600.0)]
+        seconds: f64,
+        /// Transitions per batch.
+        #[arg(long, default_value_t = 64)]
+        batch: usize,
+        /// Milliseconds between one actor's batches.
+        #[arg(long, default_value_t = 250)]
+        interval_ms: u64,
+        /// Unacknowledged batches an actor may have; a tick with a full window sends nothing.
+        #[arg(long, default_value_t = 8)]
+        window: u64,
+        /// Seconds between memory samples.
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..))]
+        sample_every: u64,
+        /// Print one JSON object (with every sample) instead of a table.
         #[arg(long)]
         json: bool,
     },
@@ -331,6 +364,24 @@ fn main() {
             interval_ms,
             json,
         }) => bench::run_weights(actors, versions, interval_ms, json),
+        Command::Bench(BenchCommand::Connections {
+            actors,
+            seconds,
+            batch,
+            interval_ms,
+            window,
+            sample_every,
+            json,
+        }) => bench_connections::run_and_print(&bench_connections::ConnectionsBench {
+            actors,
+            seconds,
+            batch,
+            interval: Duration::from_millis(interval_ms),
+            window,
+            sample_every: Duration::from_secs(sample_every),
+            json,
+        }),
+        Command::Health(args) => health::run(&args),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {

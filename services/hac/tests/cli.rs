@@ -694,3 +694,46 @@ fn render_draws_four_rooms_as_a_gif_or_png_frames() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn health_reports_an_unreachable_server_and_a_bad_url() {
+    // Port 1 on loopback: nothing listens there.
+    let o = hac(&["health", "http://127.0.0.1:1", "--timeout", "2"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    assert!(
+        text(&o.stderr).contains("connecting to http://127.0.0.1:1"),
+        "{}",
+        text(&o.stderr)
+    );
+    let o = hac(&["health", "not a url"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        text(&o.stderr).contains("invalid server URL `not a url`"),
+        "{}",
+        text(&o.stderr)
+    );
+}
+
+#[test]
+fn bench_connections_holds_actors_against_a_learner_process() {
+    let o = hac(&[
+        "bench",
+        "connections",
+        "--actors",
+        "8",
+        "--seconds",
+        "3",
+        "--sample-every",
+        "1",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["actors_connected"], 8, "{report}");
+    assert!(report["batches_acked"].as_u64().unwrap() > 0, "{report}");
+    let samples = report["samples"].as_array().unwrap();
+    assert!(samples.len() >= 3, "{report}");
+    // The learner's own memory: a real process, larger than nothing, at least its last sample.
+    let peak = report["peak_rss_kib"].as_u64().unwrap();
+    assert!(peak >= samples.last().unwrap()["rss_kib"].as_u64().unwrap() && peak > 1024);
+}
