@@ -4,12 +4,16 @@
 //!   and tests). Nothing is lost in transit, so every message is acknowledged as it is stored.
 //! - [`grpc`]: the learner service over tonic, for actors on any host: the server adapter
 //!   ([`grpc::serve`], [`grpc::LearnerGrpc`]) and the actor's side ([`grpc::GrpcLink`]).
+//! - [`shm`]: shared memory (iceoryx2) for actors on the learner's host, beside gRPC: the
+//!   learner's [`shm::ShmServer`] and the actor's [`shm::ShmLink`] (which keeps gRPC for
+//!   registration and falls back to it when shared memory is not offered).
 //!
 //! The actor loop (`hac-actor`) is written against the trait only, so every transport runs the
 //! same actor code.
 
 pub mod grpc;
 mod in_process;
+pub mod shm;
 
 use std::time::Duration;
 

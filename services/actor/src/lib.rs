@@ -1,4 +1,5 @@
-//! The actor daemon: connects to a learner service over gRPC, registers, and runs the actor loop
+//! The actor daemon: connects to a learner service over gRPC (and, on the learner's host, shared
+//! memory: `--transport`), registers, and runs the actor loop
 //! ([`hac_actor::run_actor`]) as a trainer (rollouts streamed as transitions) or an evaluator
 //! (greedy test rounds reported to the learning curve).
 //!
@@ -7,13 +8,14 @@
 //! (checked between episodes; unacknowledged messages get `--flush-timeout` to reach the
 //! learner). A second signal exits at once.
 
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
-use hac_actor::{ActorOptions, run_actor};
+use hac_actor::{ActorOptions, ActorSummary, run_actor};
 use hac_proto::ActorRole;
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
+use hac_transport::shm::{self, Overflow, ShmLink, ShmLinkOptions, ShmMode};
 use hac_transport::{ActorLink, LinkError};
 
 /// What the actor does.
@@ -69,6 +71,38 @@ pub struct ActorArgs {
     /// Seconds to wait, after an interrupt, for the learner to acknowledge what was sent.
     #[arg(long, value_name = "SECS", default_value = "10", value_parser = seconds)]
     pub flush_timeout: Duration,
+    #[command(flatten)]
+    pub transport: TransportArgs,
+}
+
+/// How the actor reaches the learner (docs/SHM.md).
+#[derive(Debug, Clone, clap::Args)]
+pub struct TransportArgs {
+    /// grpc; shm (shared memory: fails unless the learner serves it to this host); auto (shared
+    /// memory when the learner offers it to this host at registration, else gRPC).
+    #[arg(long = "transport", value_enum, env = "HAC_TRANSPORT", default_value_t = Transport::Auto)]
+    pub transport: Transport,
+    /// Shared memory: when the window of unacknowledged messages is full, block (the learner's
+    /// backpressure) or drop new transition batches (counted and logged; episode summaries
+    /// always wait).
+    #[arg(long = "shm-overflow", value_enum, env = "HAC_SHM_OVERFLOW",
+          default_value_t = ShmOverflow::Block)]
+    pub overflow: ShmOverflow,
+}
+
+/// `--transport`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Transport {
+    Grpc,
+    Shm,
+    Auto,
+}
+
+/// `--shm-overflow`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ShmOverflow {
+    Block,
+    Drop,
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -96,7 +130,10 @@ pub fn run(args: ActorArgs) -> Result<()> {
             Role::Evaluator => ActorRole::Evaluator,
         },
         hostname,
-        transports: vec!["grpc".into()],
+        transports: match args.transport.transport {
+            Transport::Grpc => vec!["grpc".into()],
+            Transport::Shm | Transport::Auto => vec!["grpc".into(), shm::TRANSPORT.into()],
+        },
         lockstep: args.lockstep,
         eval_every_episodes: args.eval_every,
         max_episodes: args.max_episodes,
@@ -110,24 +147,44 @@ pub fn run(args: ActorArgs) -> Result<()> {
         ..GrpcLinkOptions::default()
     };
     let interrupt = hac_run::signals::interrupt_flag()?;
-    let mut link =
-        GrpcLink::connect(&args.learner, link_options).context("invalid value for --learner")?;
-    tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, "actor starting");
-    let summary = run_actor(&mut link, &options, &interrupt, |e| {
-        tracing::info!(
-            weights_version = e.weights_version,
-            trained_episodes = e.trained_episodes,
-            success = e.success_rate,
-            "evaluation reported"
-        );
-    })
-    .with_context(|| format!("actor {actor_id}"))?;
-    if !summary.run_finished {
-        match link.flush(args.flush_timeout) {
-            Ok(()) | Err(LinkError::Finished) => {}
-            Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
+    let transport = args.transport.transport;
+    tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, ?transport, "actor starting");
+    let summary = match args.transport.transport {
+        Transport::Grpc => {
+            let mut link = GrpcLink::connect(&args.learner, link_options)
+                .context("invalid value for --learner")?;
+            drive(&mut link, &options, &interrupt, &args)?
         }
-    }
+        Transport::Shm | Transport::Auto => {
+            let shm_options = ShmLinkOptions {
+                mode: if args.transport.transport == Transport::Shm {
+                    ShmMode::Require
+                } else {
+                    ShmMode::Prefer
+                },
+                window: link_options.window,
+                max_batch_transitions: options.batch_transitions,
+                overflow: match args.transport.overflow {
+                    ShmOverflow::Block => Overflow::Block,
+                    ShmOverflow::Drop => Overflow::Drop,
+                },
+                give_up_after: args.give_up_after,
+                ..ShmLinkOptions::default()
+            };
+            let mut link = ShmLink::connect(&args.learner, link_options, shm_options)
+                .context("invalid value for --learner")?;
+            let summary = drive(&mut link, &options, &interrupt, &args)?;
+            let (batches, transitions) = link.dropped();
+            if batches > 0 {
+                tracing::warn!(
+                    dropped_batches = batches,
+                    dropped_transitions = transitions,
+                    "transition batches dropped while the learner was behind (--shm-overflow drop)"
+                );
+            }
+            summary
+        }
+    };
     tracing::info!(
         actor = %actor_id,
         incarnation = summary.incarnation,
@@ -140,6 +197,31 @@ pub fn run(args: ActorArgs) -> Result<()> {
         "actor stopped"
     );
     Ok(())
+}
+
+/// Runs the actor loop over `link`, then flushes what is unacknowledged (unless the run is over).
+fn drive(
+    link: &mut dyn ActorLink,
+    options: &ActorOptions,
+    interrupt: &AtomicBool,
+    args: &ActorArgs,
+) -> Result<ActorSummary> {
+    let summary = run_actor(link, options, interrupt, |e| {
+        tracing::info!(
+            weights_version = e.weights_version,
+            trained_episodes = e.trained_episodes,
+            success = e.success_rate,
+            "evaluation reported"
+        );
+    })
+    .with_context(|| format!("actor {}", options.actor_id))?;
+    if !summary.run_finished {
+        match link.flush(args.flush_timeout) {
+            Ok(()) | Err(LinkError::Finished) => {}
+            Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
+        }
+    }
+    Ok(summary)
 }
 
 /// This host's name as the kernel knows it (no extra dependency), or `actor` if unreadable.

@@ -14,6 +14,7 @@
 
 mod bench;
 mod bench_grpc;
+mod bench_shm;
 mod env_cmd;
 mod experiment;
 mod render;
@@ -97,8 +98,11 @@ enum BenchCommand {
         json: bool,
     },
     /// Weights fan-out: the learner publishes new versions (pendulum, 2 levels) to many
-    /// gRPC weights watchers; prints the publication-to-receipt delay p50/p99.
+    /// actors' weights watchers; prints the publication-to-receipt delay p50/p99.
     Weights {
+        /// How the weights travel: gRPC streams, or shared memory to same-host actors.
+        #[arg(long, value_enum, default_value_t = bench::WeightsTransport::Grpc)]
+        transport: bench::WeightsTransport,
         /// Connected watchers (actors).
         #[arg(long, default_value_t = 32)]
         actors: usize,
@@ -272,11 +276,12 @@ fn main() {
         }),
         Command::Render(args) => render::run(&args),
         Command::Bench(BenchCommand::Weights {
+            transport,
             actors,
             versions,
             interval_ms,
             json,
-        }) => bench::run_weights(actors, versions, interval_ms, json),
+        }) => bench::run_weights(transport, actors, versions, interval_ms, json),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {

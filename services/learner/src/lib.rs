@@ -8,7 +8,8 @@
 //!   the end `weights/level<i>.safetensors` and `summary.json`).
 //!
 //! Life of a run: validate the config, start the learner, bind `--listen` and print
-//! `listening on <addr>` (one line on stdout, for scripts), serve. When the run finishes by itself
+//! `listening on <addr>` (one line on stdout, for scripts), serve (with `--shm`, shared memory
+//! for actors on this host as well, see `hac_transport::shm`). When the run finishes by itself
 //! (episode budget or `stop_at`), keep serving for `--grace-period` so actors receive the final
 //! weights; on SIGINT/SIGTERM, finish the run at once. Then stop accepting, end open streams,
 //! drain connections (at most `--drain-timeout`), save, exit 0. A second signal exits at once.
@@ -27,6 +28,7 @@ use anyhow::{Context, Result};
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions};
 use hac_transport::grpc::{ServerOptions, serve};
+use hac_transport::shm::{Namespace, ShmServer, ShmServerOptions};
 use tokio::net::TcpListener;
 use tokio::signal::unix::{Signal, SignalKind, signal};
 use tokio::sync::watch;
@@ -98,6 +100,45 @@ pub struct LearnerArgs {
     /// Seconds to wait at shutdown for actors' connections to close.
     #[arg(long, value_name = "SECS", default_value = "5", value_parser = seconds)]
     pub drain_timeout: Duration,
+    #[command(flatten)]
+    pub shm: ShmArgs,
+}
+
+/// Shared memory beside gRPC (docs/SHM.md).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ShmArgs {
+    /// Also serve actors on this host over shared memory (iceoryx2, /dev/shm) beside gRPC;
+    /// actors with `--transport auto` (their default) or `shm` use it [default: off].
+    #[arg(long = "shm", env = "HAC_SHM")]
+    pub enabled: bool,
+    /// Shared memory: most actors attached at once (sizes the learner's share of /dev/shm;
+    /// more actors fall back to gRPC).
+    #[arg(long = "shm-max-actors", env = "HAC_SHM_MAX_ACTORS", value_name = "N",
+          default_value_t = 32, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    pub max_actors: u64,
+    /// Shared memory: messages each actor may have unacknowledged (sizes each actor's share of
+    /// /dev/shm).
+    #[arg(long = "shm-window", env = "HAC_SHM_WINDOW", value_name = "N",
+          default_value_t = 32, value_parser = clap::value_parser!(u64).range(1..=4096))]
+    pub window: u64,
+}
+
+impl ShmArgs {
+    /// Starts the shared-memory server for the run served at `addr`, if enabled.
+    fn start(&self, learner: &Arc<Learner>, addr: SocketAddr) -> Result<Option<ShmServer>> {
+        if !self.enabled {
+            return Ok(None);
+        }
+        let namespace = Namespace::for_run(&learner.status().run_config_digest, addr);
+        let options = ShmServerOptions {
+            max_actors: usize::try_from(self.max_actors).context("--shm-max-actors")?,
+            window: usize::try_from(self.window).context("--shm-window")?,
+            ..ShmServerOptions::default()
+        };
+        let server = ShmServer::start(learner.clone(), namespace, options)
+            .context("serving shared memory (--shm)")?;
+        Ok(Some(server))
+    }
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -144,6 +185,7 @@ impl LearnerArgs {
             max_message_bytes: usize::try_from(self.max_message_bytes)
                 .context("invalid value for --max-message-bytes")?,
             drain_timeout: self.drain_timeout,
+            shm_offer: None,
         })
     }
 }
@@ -215,7 +257,7 @@ impl Signals {
 async fn serve_run(
     learner: Arc<Learner>,
     args: &LearnerArgs,
-    options: ServerOptions,
+    mut options: ServerOptions,
     dir: &mut RunDir,
 ) -> Result<()> {
     let mut signals = Signals::install()?;
@@ -223,6 +265,9 @@ async fn serve_run(
         .await
         .with_context(|| format!("binding --listen {}", args.listen))?;
     let addr = listener.local_addr().context("reading the bound address")?;
+    // Named after the bound address: stopped (released) after the gRPC server below.
+    let shm = args.shm.start(&learner, addr)?;
+    options.shm_offer = shm.as_ref().map(ShmServer::offer);
     {
         let mut stdout = std::io::stdout().lock();
         writeln!(stdout, "listening on {addr}")?;
@@ -273,5 +318,8 @@ async fn serve_run(
         .await
         .context("the server task failed")?
         .context("serving actors")?;
+    if let Some(shm) = shm {
+        shm.stop();
+    }
     run_dir::record_new(dir, &learner.curve())
 }

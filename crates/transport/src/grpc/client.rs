@@ -58,6 +58,10 @@ pub struct GrpcLinkOptions {
     pub max_message_bytes: usize,
     /// Seed of the backoff jitter.
     pub jitter_seed: u64,
+    /// Keep a `WatchWeights` stream open from registration on. Off for a link that only carries
+    /// the control plane beside shared memory (which brings the weights); see
+    /// [`GrpcLink::watch_weights`].
+    pub watch_weights: bool,
 }
 
 impl Default for GrpcLinkOptions {
@@ -73,6 +77,7 @@ impl Default for GrpcLinkOptions {
             give_up_after: Duration::from_secs(300),
             max_message_bytes: 64 << 20,
             jitter_seed: (u64::from(std::process::id()) << 32) | u64::from(nanos),
+            watch_weights: true,
         }
     }
 }
@@ -106,7 +111,8 @@ pub struct GrpcLink {
     channel: Channel,
     /// `Some` until drop.
     runtime: Option<Runtime>,
-    tasks_started: bool,
+    ingest_started: bool,
+    weights_started: bool,
 }
 
 #[derive(Debug)]
@@ -210,8 +216,19 @@ impl GrpcLink {
             shared,
             channel,
             runtime: Some(runtime),
-            tasks_started: false,
+            ingest_started: false,
+            weights_started: false,
         })
+    }
+
+    /// Starts the `WatchWeights` stream if it is not running (a link made with
+    /// `watch_weights: false` that turns out to need it). Takes effect once registered.
+    pub fn watch_weights(&mut self) {
+        if self.ingest_started && !self.weights_started {
+            self.weights_started = true;
+            let task = weights_task(self.shared.clone(), self.channel.clone());
+            self.runtime().spawn(task);
+        }
     }
 
     /// Messages sent and not yet acknowledged.
@@ -252,11 +269,13 @@ impl ActorLink for GrpcLink {
             renumber(&mut outbox, admission.incarnation);
         }
         shared.learner_version.store(0, Ordering::Relaxed);
-        if !self.tasks_started {
-            self.tasks_started = true;
-            let runtime = self.runtime();
-            runtime.spawn(ingest_task(shared.clone(), channel.clone()));
-            runtime.spawn(weights_task(shared, channel));
+        if !self.ingest_started {
+            self.ingest_started = true;
+            self.runtime()
+                .spawn(ingest_task(shared.clone(), channel.clone()));
+            if shared.options.watch_weights {
+                self.watch_weights();
+            }
         }
         Ok(admission)
     }
