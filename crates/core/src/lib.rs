@@ -21,5 +21,5 @@ pub use env::{Env, EnvSpec, LevelDims, Mode, StateError};
 pub use rng::Rng;
 pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
 pub use transition::{
-    Batch, NullSink, OwnedTransition, Transition, TransitionKind, TransitionSink,
+    Batch, BatchRef, NullSink, OwnedTransition, Transition, TransitionKind, TransitionSink,
 };

@@ -100,4 +100,32 @@ impl Batch {
             terminals: vec![0.0; len],
         }
     }
+
+    /// The batch as borrowed slices.
+    pub fn view(&self) -> BatchRef<'_> {
+        BatchRef {
+            len: self.len,
+            states: &self.states,
+            actions: &self.actions,
+            rewards: &self.rewards,
+            next_states: &self.next_states,
+            goals: &self.goals,
+            terminals: &self.terminals,
+        }
+    }
+}
+
+/// A [`Batch`] borrowed from wherever it lives (a `Batch`, a shared-memory message): the same
+/// structure-of-arrays layout, so that ingest reads transitions in place, without a copy. It
+/// carries no dimensions: whoever reads it knows the level's (ingest checks the lengths against
+/// them first).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BatchRef<'a> {
+    pub len: usize,
+    pub states: &'a [f32],
+    pub actions: &'a [f32],
+    pub rewards: &'a [f32],
+    pub next_states: &'a [f32],
+    pub goals: &'a [f32],
+    pub terminals: &'a [f32],
 }

@@ -27,7 +27,7 @@
 //!   random streams, counters and curve, with weights versions continuing above the
 //!   checkpoint's (`checkpoint` module; files in safetensors and JSON).
 //!
-//! Transports (in-process, gRPC) are thin adapters over these methods; they live in
+//! Transports (in-process, gRPC, shared memory) are thin adapters over these methods; they live in
 //! `hac-transport`.
 
 mod checkpoint;
@@ -44,8 +44,8 @@ use hac_agent::{Agent, LevelReport, RoundReport, RunConfig};
 use hac_core::{Batch, EnvSpec, LevelDims, Rng};
 use hac_nn::{LevelLearner, UpdateStats};
 use hac_proto::{
-    ActorRole, Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot,
-    WireError, check_batch,
+    ActorRole, Admission, Evaluation, IngestItemRef, IngestMessage, IngestRef, Registration,
+    WeightsSnapshot, WireError, check_batch,
 };
 use hac_replay::{
     RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
@@ -183,6 +183,7 @@ impl RejectReason {
             WireError::NotFinite { .. } => Self::NotFinite,
             WireError::LevelOutOfRange { .. } => Self::LevelOutOfRange,
             WireError::CountAboveLimit { .. } => Self::Oversized,
+            WireError::Packed(_) => Self::Malformed,
             _ => Self::InvalidBatch,
         }
     }
@@ -720,6 +721,7 @@ impl Learner {
             levels: shared.dims.clone(),
             max_batch_transitions: shared.options.max_batch_transitions,
             max_weights_lag: shared.options.max_weights_lag,
+            shm: None,
         })
     }
 
@@ -784,7 +786,14 @@ impl Learner {
     /// Validates and stores one message of an actor's ingest stream; see the crate docs. On
     /// error nothing is stored and the rejection is counted.
     pub fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
+        self.ingest_ref(&msg.view())
+    }
+
+    /// [`ingest`](Self::ingest) for a borrowed message (a batch read in place from shared
+    /// memory): the same checks, counts and exactly-once rule; nothing is copied but into replay.
+    pub fn ingest_ref(&self, msg: &IngestRef<'_>) -> Result<Stored, IngestError> {
         let result = {
+            // Checkpoints take the gate exclusively: a consistent cut between messages.
             let _running = self.shared.gate.read();
             self.shared.ingest(msg)
         };
@@ -882,16 +891,16 @@ impl Shared {
         self.actors.read().get(id).cloned()
     }
 
-    fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {
+    fn ingest(&self, msg: &IngestRef<'_>) -> Result<Stored, IngestError> {
         let counters = &self.counters;
         counters.messages.fetch_add(1, Ordering::Relaxed);
         let entry = self
-            .actor(&msg.actor_id)
-            .ok_or_else(|| IngestError::UnknownActor(msg.actor_id.clone()))?;
+            .actor(msg.actor_id)
+            .ok_or_else(|| IngestError::UnknownActor(msg.actor_id.to_string()))?;
         let mut actor = entry.lock();
         if msg.incarnation != actor.incarnation {
             return Err(IngestError::StaleIncarnation {
-                actor: msg.actor_id.clone(),
+                actor: msg.actor_id.to_string(),
                 got: msg.incarnation,
                 current: actor.incarnation,
             });
@@ -908,53 +917,51 @@ impl Shared {
         let expected = actor.stored_through + 1;
         if msg.sequence != expected {
             return Err(IngestError::SequenceGap {
-                actor: msg.actor_id.clone(),
+                actor: msg.actor_id.to_string(),
                 got: msg.sequence,
                 expected,
             });
         }
         if actor.role == ActorRole::Evaluator {
-            return Err(IngestError::WrongRole(msg.actor_id.clone()));
+            return Err(IngestError::WrongRole(msg.actor_id.to_string()));
         }
         if self.finished.load(Ordering::Acquire) {
             return Err(IngestError::Finished);
         }
-        match &msg.item {
-            IngestItem::Batch(decoded) => {
-                check_batch(
-                    decoded.level,
-                    &decoded.batch,
-                    &self.dims,
-                    self.options.max_batch_transitions,
-                )?;
-                let level = decoded.level;
+        match msg.item {
+            IngestItemRef::Batch {
+                level,
+                weights_version,
+                batch,
+            } => {
+                check_batch(level, batch, &self.dims, self.options.max_batch_transitions)?;
                 let table = self.replay.table(level);
                 // Each actor starts at its own shard and moves on by one per batch: writers
                 // rarely meet, and one actor alone still fills every shard.
                 let shard = (actor.ordinal as usize + actor.batches as usize) % table.shard_count();
                 actor.batches += 1;
-                self.limiters[level].record_insert(decoded.batch.len);
-                table.insert_batch_into(shard, &decoded.batch);
-                actor.transitions += decoded.batch.len as u64;
-                actor.weights_version = actor.weights_version.max(decoded.weights_version);
+                self.limiters[level].record_insert(batch.len);
+                table.insert_batch_into(shard, batch);
+                actor.transitions += batch.len as u64;
+                actor.weights_version = actor.weights_version.max(weights_version);
                 counters.batches.fetch_add(1, Ordering::Relaxed);
                 counters
                     .transitions
-                    .fetch_add(decoded.batch.len as u64, Ordering::Relaxed);
+                    .fetch_add(batch.len as u64, Ordering::Relaxed);
             }
-            IngestItem::Episode {
+            IngestItemRef::Episode {
                 env_steps,
                 success,
                 weights_version,
             } => {
                 actor.episodes += 1;
                 actor.env_steps += env_steps;
-                actor.weights_version = actor.weights_version.max(*weights_version);
+                actor.weights_version = actor.weights_version.max(weights_version);
                 counters.episodes.fetch_add(1, Ordering::Relaxed);
                 counters
                     .successes
-                    .fetch_add(u64::from(*success), Ordering::Relaxed);
-                counters.env_steps.fetch_add(*env_steps, Ordering::Relaxed);
+                    .fetch_add(u64::from(success), Ordering::Relaxed);
+                counters.env_steps.fetch_add(env_steps, Ordering::Relaxed);
                 actor.stored_through = msg.sequence;
                 drop(actor);
                 for level in 0..self.limiters.len() {

@@ -1,6 +1,6 @@
 //! Transition batches: `pb::TransitionBatch` <-> core [`Batch`], validated on the way in.
 
-use hac_core::{Batch, LevelDims};
+use hac_core::{Batch, BatchRef, LevelDims};
 
 use crate::{WireError, pb};
 
@@ -208,23 +208,23 @@ impl Fields<'_> {
     }
 }
 
-/// Validates a batch built in this process (the in-process transport) exactly as
-/// [`decode_batch`] validates one from the wire: level range, count, lengths, finite values,
-/// terminals 0.0 or 1.0.
+/// Validates a batch that did not come through [`decode_batch`] (built in this process, or read
+/// in place from shared memory) exactly as [`decode_batch`] validates one from the wire: level
+/// range, count, lengths, finite values, terminals 0.0 or 1.0.
 pub fn check_batch(
     level: usize,
-    batch: &Batch,
+    batch: BatchRef<'_>,
     dims: &[LevelDims],
     max_count: usize,
 ) -> Result<(), WireError> {
     let fields = Fields {
         level: u32::try_from(level).unwrap_or(u32::MAX),
         count: u32::try_from(batch.len).unwrap_or(u32::MAX),
-        states: &batch.states,
-        actions: &batch.actions,
-        next_states: &batch.next_states,
-        goals: &batch.goals,
-        rewards: &batch.rewards,
+        states: batch.states,
+        actions: batch.actions,
+        next_states: batch.next_states,
+        goals: batch.goals,
+        rewards: batch.rewards,
         terminals: batch.terminals.len(),
     };
     fields.check(dims, max_count)?;

@@ -56,6 +56,10 @@ pub enum WireError {
     UnknownEnum { field: &'static str, value: i32 },
     #[error("evaluation_report.successes {successes} above episodes {episodes}")]
     SuccessesAboveEpisodes { successes: u32, episodes: u32 },
+    /// Bytes in shared memory that are not a packed message (the counterpart of bytes prost
+    /// cannot decode).
+    #[error("packed message: {0}")]
+    Packed(Cow<'static, str>),
 }
 
 impl WireError {

@@ -1,6 +1,6 @@
 //! The ingest stream: `pb::IngestRequest` <-> [`IngestMessage`].
 
-use hac_core::LevelDims;
+use hac_core::{BatchRef, LevelDims};
 
 use crate::{DecodedBatch, WireError, decode_batch, pb};
 
@@ -24,6 +24,64 @@ pub enum IngestItem {
         success: bool,
         weights_version: u64,
     },
+}
+
+/// An ingest message borrowed from where it lies: an [`IngestMessage`] ([`IngestMessage::view`]),
+/// or a packed message in shared memory ([`unpack_ingest`](crate::unpack_ingest)), read in place.
+/// This is what the learner ingests; its batch is not checked yet.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IngestRef<'a> {
+    pub actor_id: &'a str,
+    pub incarnation: u64,
+    pub sequence: u64,
+    pub item: IngestItemRef<'a>,
+}
+
+/// What an [`IngestRef`] carries.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum IngestItemRef<'a> {
+    Batch {
+        level: usize,
+        weights_version: u64,
+        batch: BatchRef<'a>,
+    },
+    Episode {
+        env_steps: u64,
+        success: bool,
+        weights_version: u64,
+    },
+}
+
+impl IngestMessage {
+    pub fn view(&self) -> IngestRef<'_> {
+        IngestRef {
+            actor_id: &self.actor_id,
+            incarnation: self.incarnation,
+            sequence: self.sequence,
+            item: self.item.view(),
+        }
+    }
+}
+
+impl IngestItem {
+    pub fn view(&self) -> IngestItemRef<'_> {
+        match self {
+            Self::Batch(decoded) => IngestItemRef::Batch {
+                level: decoded.level,
+                weights_version: decoded.weights_version,
+                batch: decoded.batch.view(),
+            },
+            &Self::Episode {
+                env_steps,
+                success,
+                weights_version,
+            } => IngestItemRef::Episode {
+                env_steps,
+                success,
+                weights_version,
+            },
+        }
+    }
 }
 
 /// Validates an ingest request: the identifying fields are set, an item is present, and a batch

@@ -44,6 +44,18 @@ pub struct Admission {
     pub max_batch_transitions: usize,
     /// Actors refuse to act on weights more than this many versions behind the newest they know.
     pub max_weights_lag: u64,
+    /// Shared memory served to actors on the learner's host, if any.
+    pub shm: Option<ShmOffer>,
+}
+
+/// Shared memory (iceoryx2) the learner serves beside gRPC to actors on its own host.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ShmOffer {
+    /// The run's service namespace: every service is named `hac/<namespace>/...`.
+    pub namespace: String,
+    /// The learner's host identity (boot id and host name); only an actor with the same identity
+    /// shares its memory.
+    pub host: String,
 }
 
 /// Results of greedy test episodes (`pb::EvaluationReport`).
@@ -179,6 +191,14 @@ impl TryFrom<pb::RegisterResponse> for Admission {
                 })
             })
             .collect::<Result<_, _>>()?;
+        let shm = match (msg.shm_namespace.is_empty(), msg.shm_host.is_empty()) {
+            (true, _) => None,
+            (false, true) => return Err(WireError::missing("register_response.shm_host")),
+            (false, false) => Some(ShmOffer {
+                namespace: msg.shm_namespace,
+                host: msg.shm_host,
+            }),
+        };
         Ok(Self {
             incarnation: msg.incarnation,
             run_config_toml: msg.run_config_toml,
@@ -187,6 +207,7 @@ impl TryFrom<pb::RegisterResponse> for Admission {
             levels,
             max_batch_transitions: msg.max_batch_transitions as usize,
             max_weights_lag: msg.max_weights_lag,
+            shm,
         })
     }
 }
@@ -195,6 +216,9 @@ impl TryFrom<pb::RegisterResponse> for Admission {
 /// If `max_batch_transitions` or a dimension exceeds `u32::MAX`.
 impl From<Admission> for pb::RegisterResponse {
     fn from(admission: Admission) -> Self {
+        let (shm_namespace, shm_host) = admission
+            .shm
+            .map_or_else(Default::default, |offer| (offer.namespace, offer.host));
         Self {
             incarnation: admission.incarnation,
             run_config_toml: admission.run_config_toml,
@@ -204,6 +228,8 @@ impl From<Admission> for pb::RegisterResponse {
             max_batch_transitions: u32::try_from(admission.max_batch_transitions)
                 .expect("max_batch_transitions fits the wire's u32"),
             max_weights_lag: admission.max_weights_lag,
+            shm_namespace,
+            shm_host,
         }
     }
 }
@@ -278,6 +304,10 @@ mod tests {
             ],
             max_batch_transitions: 4096,
             max_weights_lag: 2,
+            shm: Some(ShmOffer {
+                namespace: "0123abcd-127.0.0.1-50051".into(),
+                host: "boot/node-1".into(),
+            }),
         }
     }
 
@@ -326,6 +356,22 @@ mod tests {
             LevelDims::try_from(pb::LevelDims::from(dims)).unwrap(),
             dims
         );
+    }
+
+    #[test]
+    fn an_admission_without_shared_memory_round_trips_and_a_half_offer_is_refused() {
+        let a = Admission {
+            shm: None,
+            ..admission()
+        };
+        let msg = wire(pb::RegisterResponse::from(a.clone()));
+        assert!(msg.shm_namespace.is_empty() && msg.shm_host.is_empty());
+        assert_eq!(Admission::try_from(msg).unwrap(), a);
+
+        let mut msg = pb::RegisterResponse::from(admission());
+        msg.shm_host.clear();
+        let err = Admission::try_from(msg).unwrap_err();
+        assert_eq!(err.to_string(), "missing field register_response.shm_host");
     }
 
     #[test]

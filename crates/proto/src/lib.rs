@@ -7,9 +7,13 @@
 //! - [`FILE_DESCRIPTOR_SET`]: the compiled protos, for the gRPC reflection service.
 //! - `batch`: transition batches ([`decode_batch`], [`decode_batch_into`], [`encode_batch`],
 //!   [`encode_batch_into`]), checked against the run's [`LevelDims`](hac_core::LevelDims).
-//! - `ingest`: the ingest stream's messages ([`IngestMessage`], [`IngestItem`], [`decode_ingest`]).
+//! - `ingest`: the ingest stream's messages ([`IngestMessage`], [`IngestItem`], [`decode_ingest`]),
+//!   and their borrowed form [`IngestRef`], which the learner ingests.
+//! - `packed`: the shared-memory form of ingest messages and weights ([`pack_ingest`],
+//!   [`unpack_ingest`] reading a batch in place, [`pack_weights`], [`unpack_weights`]).
 //! - `weights`: [`WeightsSnapshot`] and the [`WeightsWatch`] request.
-//! - `learner`: [`Registration`], [`Admission`] (with the per-level dimensions), [`Evaluation`].
+//! - `learner`: [`Registration`], [`Admission`] (with the per-level dimensions and the
+//!   [`ShmOffer`]), [`Evaluation`].
 //! - `error`: [`WireError`].
 //!
 //! Conversions follow one pattern: `TryFrom<pb::X>` for what comes in, `From<X> for pb::X` for
@@ -19,6 +23,7 @@ mod batch;
 mod error;
 mod ingest;
 mod learner;
+mod packed;
 mod weights;
 
 pub use batch::{
@@ -26,8 +31,12 @@ pub use batch::{
     encode_batch_into,
 };
 pub use error::WireError;
-pub use ingest::{IngestItem, IngestMessage, decode_ingest};
-pub use learner::{ActorRole, Admission, Evaluation, Registration};
+pub use ingest::{IngestItem, IngestItemRef, IngestMessage, IngestRef, decode_ingest};
+pub use learner::{ActorRole, Admission, Evaluation, Registration, ShmOffer};
+pub use packed::{
+    PACKED_ALIGNMENT, max_packed_ingest_len, pack_ingest, pack_weights, packed_ingest_len,
+    packed_weights_len, unpack_ingest, unpack_weights,
+};
 pub use weights::{WeightsSnapshot, WeightsWatch};
 
 /// The generated `hac.v1` package: messages, `learner_client`/`learner_server`,

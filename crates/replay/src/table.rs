@@ -3,7 +3,7 @@
 use std::fmt;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
-use hac_core::{Batch, LevelDims, Rng, Transition, TransitionKind};
+use hac_core::{Batch, BatchRef, LevelDims, Rng, Transition, TransitionKind};
 use parking_lot::Mutex;
 
 use crate::ring::Ring;
@@ -205,17 +205,26 @@ impl ReplayTable {
 
     /// Stores every transition of `batch` in shard `shard`, taking the shard's lock once. The
     /// batch must have this table's dimensions (checked by a debug assertion; ingest validates
-    /// batches before they get here).
+    /// batches before they get here). It is read in place: a batch in shared memory is copied
+    /// only into the ring.
     ///
     /// # Panics
     /// If `shard >= self.shard_count()`.
-    pub fn insert_batch_into(&self, shard: usize, batch: &Batch) {
-        debug_assert_eq!(batch.dims, self.dims, "batch does not fit the replay table");
+    pub fn insert_batch_into(&self, shard: usize, batch: BatchRef<'_>) {
         let LevelDims {
             state,
             action,
             goal,
         } = self.dims;
+        debug_assert!(
+            batch.states.len() == batch.len * state
+                && batch.actions.len() == batch.len * action
+                && batch.rewards.len() == batch.len
+                && batch.next_states.len() == batch.len * state
+                && batch.goals.len() == batch.len * goal
+                && batch.terminals.len() == batch.len,
+            "batch does not fit the replay table"
+        );
         let shard = &self.shards[shard].0;
         let mut ring = shard.ring.lock();
         for j in 0..batch.len {
@@ -428,7 +437,7 @@ mod tests {
             batch.terminals[j] = f32::from(u8::from(f.terminal));
         }
         // Shard 1 holds 2 rows: the batch's first row is overwritten by its third.
-        table.insert_batch_into(1, &batch);
+        table.insert_batch_into(1, batch.view());
         assert_eq!(ids_oldest_first(&table, 1), [11, 12]);
         assert_eq!(table.shard_lens().collect::<Vec<_>>(), [0, 2]);
         assert_eq!(table.inserted_total(), 3);

@@ -4,6 +4,9 @@
 //!   and tests). Nothing is lost in transit, so every message is acknowledged as it is stored.
 //! - [`grpc`]: the learner service over tonic, for actors on any host: the server adapter
 //!   ([`grpc::serve`], [`grpc::LearnerGrpc`]) and the actor's side ([`grpc::GrpcLink`]).
+//! - [`shm`]: shared memory (iceoryx2) for actors on the learner's host, beside gRPC: the
+//!   learner's [`shm::ShmServer`] and the actor's [`shm::ShmLink`] (which keeps gRPC for
+//!   registration and falls back to it when shared memory is not offered).
 //!
 //! - [`security`]: the bearer token and TLS settings of servers and clients.
 //! - [`metrics`]: Prometheus text exposition over HTTP (`/metrics`), and the learner's metrics.
@@ -15,6 +18,7 @@ pub mod grpc;
 mod in_process;
 pub mod metrics;
 pub mod security;
+pub mod shm;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};

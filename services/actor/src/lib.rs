@@ -1,4 +1,5 @@
-//! The actor daemon: connects to a learner service over gRPC, registers, and runs the actor loop
+//! The actor daemon: connects to a learner service over gRPC (and, on the learner's host, shared
+//! memory: `--transport`), registers, and runs the actor loop
 //! ([`hac_actor::run_actor`]) as a trainer (rollouts streamed as transitions) or an evaluator
 //! (greedy test rounds reported to the learning curve).
 //!
@@ -15,15 +16,16 @@
 pub mod ops;
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use clap::Args as _;
-use hac_actor::{ActorOptions, run_actor};
+use hac_actor::{ActorOptions, ActorSummary, run_actor};
 use hac_proto::ActorRole;
 use hac_run::daemon::{ConfigArgs, Section};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
+use hac_transport::shm::{self, Overflow, ShmLink, ShmLinkOptions, ShmMode};
 use hac_transport::{ActorLink, LinkError};
 
 /// What the actor does.
@@ -83,6 +85,8 @@ pub struct ActorArgs {
     pub ops: ops::OpsArgs,
     #[command(flatten)]
     pub config: ConfigArgs,
+    #[command(flatten)]
+    pub transport: TransportArgs,
 }
 
 /// The actor's table of the config file, `[actor]`: every flag of [`ActorArgs`] but the
@@ -92,6 +96,36 @@ pub fn config_section() -> Section {
         "actor",
         ActorArgs::augment_args(clap::Command::new("actor")),
     )
+}
+
+/// How the actor reaches the learner (docs/SHM.md).
+#[derive(Debug, Clone, clap::Args)]
+pub struct TransportArgs {
+    /// grpc; shm (shared memory: fails unless the learner serves it to this host); auto (shared
+    /// memory when the learner offers it to this host at registration, else gRPC).
+    #[arg(long = "transport", value_enum, env = "HAC_TRANSPORT", default_value_t = Transport::Auto)]
+    pub transport: Transport,
+    /// Shared memory: when the window of unacknowledged messages is full, block (the learner's
+    /// backpressure) or drop new transition batches (counted and logged; episode summaries
+    /// always wait).
+    #[arg(long = "shm-overflow", value_enum, env = "HAC_SHM_OVERFLOW",
+          default_value_t = ShmOverflow::Block)]
+    pub overflow: ShmOverflow,
+}
+
+/// `--transport`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Transport {
+    Grpc,
+    Shm,
+    Auto,
+}
+
+/// `--shm-overflow`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ShmOverflow {
+    Block,
+    Drop,
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -123,6 +157,7 @@ pub fn run(args: ActorArgs) -> Result<()> {
     if actor_id.trim().is_empty() {
         bail!("invalid value for --id: the actor id must not be empty");
     }
+    let transport = args.transport.transport;
     let options = ActorOptions {
         actor_id: actor_id.clone(),
         role: match args.role {
@@ -130,7 +165,10 @@ pub fn run(args: ActorArgs) -> Result<()> {
             Role::Evaluator => ActorRole::Evaluator,
         },
         hostname,
-        transports: vec!["grpc".into()],
+        transports: match transport {
+            Transport::Grpc => vec!["grpc".into()],
+            Transport::Shm | Transport::Auto => vec!["grpc".into(), shm::TRANSPORT.into()],
+        },
         lockstep: args.lockstep,
         eval_every_episodes: args.eval_every,
         max_episodes: args.max_episodes,
@@ -147,8 +185,6 @@ pub fn run(args: ActorArgs) -> Result<()> {
         ..GrpcLinkOptions::default()
     };
     let interrupt = hac_run::signals::interrupt_flag()?;
-    let mut link =
-        GrpcLink::connect(&args.learner, link_options).context("invalid value for --learner")?;
     let board = Arc::new(ops::Board::new(
         actor_id.clone(),
         hac_transport::grpc::role_name(options.role),
@@ -156,42 +192,63 @@ pub fn run(args: ActorArgs) -> Result<()> {
         args.learner.clone(),
         interrupt.clone(),
     ));
-    let mut observed = ops::Observed::new(&mut link, &board);
     let servers = ops::OpsServers::start(&ops, board.clone())?;
-    tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, "actor starting");
-    let result = act(&mut observed, &options, &interrupt, args.flush_timeout);
+    tracing::info!(actor = %actor_id, learner = %args.learner, role = ?args.role, ?transport, "actor starting");
+    let result = match transport {
+        Transport::Grpc => GrpcLink::connect(&args.learner, link_options)
+            .context("invalid value for --learner")
+            .and_then(|mut link| {
+                drive(
+                    &mut ops::Observed::new(&mut link, &board),
+                    &options,
+                    &interrupt,
+                    &args,
+                )
+            }),
+        Transport::Shm | Transport::Auto => {
+            let shm_options = ShmLinkOptions {
+                mode: if transport == Transport::Shm {
+                    ShmMode::Require
+                } else {
+                    ShmMode::Prefer
+                },
+                window: link_options.window,
+                max_batch_transitions: options.batch_transitions,
+                overflow: match args.transport.overflow {
+                    ShmOverflow::Block => Overflow::Block,
+                    ShmOverflow::Drop => Overflow::Drop,
+                },
+                give_up_after: args.give_up_after,
+                ..ShmLinkOptions::default()
+            };
+            ShmLink::connect(&args.learner, link_options, shm_options)
+                .context("invalid value for --learner")
+                .and_then(|mut link| {
+                    let summary = drive(
+                        &mut ops::Observed::new(&mut link, &board),
+                        &options,
+                        &interrupt,
+                        &args,
+                    );
+                    let (batches, transitions) = link.dropped();
+                    if batches > 0 {
+                        tracing::warn!(
+                            dropped_batches = batches,
+                            dropped_transitions = transitions,
+                            "transition batches dropped while the learner was behind (--shm-overflow drop)"
+                        );
+                    }
+                    summary
+                })
+        }
+    };
     board.stopping();
     if let Some(servers) = servers {
         servers.stop();
     }
-    result
-}
-
-/// Runs the actor loop through `link`, then gives what is unacknowledged `flush_timeout` to
-/// reach the learner (unless the run is over).
-fn act(
-    link: &mut dyn ActorLink,
-    options: &ActorOptions,
-    interrupt: &std::sync::atomic::AtomicBool,
-    flush_timeout: Duration,
-) -> Result<()> {
-    let summary = run_actor(link, options, interrupt, |e| {
-        tracing::info!(
-            weights_version = e.weights_version,
-            trained_episodes = e.trained_episodes,
-            success = e.success_rate,
-            "evaluation reported"
-        );
-    })
-    .with_context(|| format!("actor {}", options.actor_id))?;
-    if !summary.run_finished {
-        match link.flush(flush_timeout) {
-            Ok(()) | Err(LinkError::Finished) => {}
-            Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
-        }
-    }
+    let summary = result?;
     tracing::info!(
-        actor = %options.actor_id,
+        actor = %actor_id,
         incarnation = summary.incarnation,
         episodes = summary.episodes,
         env_steps = summary.env_steps,
@@ -202,6 +259,32 @@ fn act(
         "actor stopped"
     );
     Ok(())
+}
+
+/// Runs the actor loop over `link`, then gives what is unacknowledged `--flush-timeout` to reach
+/// the learner (unless the run is over).
+fn drive(
+    link: &mut dyn ActorLink,
+    options: &ActorOptions,
+    interrupt: &AtomicBool,
+    args: &ActorArgs,
+) -> Result<ActorSummary> {
+    let summary = run_actor(link, options, interrupt, |e| {
+        tracing::info!(
+            weights_version = e.weights_version,
+            trained_episodes = e.trained_episodes,
+            success = e.success_rate,
+            "evaluation reported"
+        );
+    })
+    .with_context(|| format!("actor {}", options.actor_id))?;
+    if !summary.run_finished {
+        match link.flush(args.flush_timeout) {
+            Ok(()) | Err(LinkError::Finished) => {}
+            Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
+        }
+    }
+    Ok(summary)
 }
 
 /// This host's name as the kernel knows it (no extra dependency), or `actor` if unreadable.

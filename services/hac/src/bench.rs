@@ -1,4 +1,5 @@
-//! `hac bench ingest`: how fast the learner takes transitions in, through a chosen transport.
+//! `hac bench ingest`: how fast the learner takes transitions in, through a chosen transport (or
+//! all three, `--transport all`, one after the other in one table).
 //!
 //! A learner is started in this process for a pendulum-sized 2-level run (its trainers stay idle:
 //! the bench sends batches but no episode ends, so no updates are owed), then `--actors`
@@ -27,6 +28,20 @@ pub enum Transport {
     /// tonic over loopback TCP: one bidirectional ingest stream per actor, `--window` batches in
     /// flight each.
     Grpc,
+    /// Shared memory (iceoryx2): each actor a real `ShmLink` (registered over gRPC), `--window`
+    /// batches unacknowledged each.
+    Shm,
+    /// in-process, grpc and shm one after the other, each with a fresh learner, in one table.
+    All,
+}
+
+/// Where `hac bench weights` sends the weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WeightsTransport {
+    /// gRPC `WatchWeights` streams over loopback.
+    Grpc,
+    /// The shared-memory weights service, as same-host actors receive it.
+    Shm,
 }
 
 /// `hac bench ingest` settings.
@@ -109,18 +124,24 @@ pub fn bench_learner(max_batch: usize) -> Result<Arc<Learner>> {
     ))
 }
 
-/// `hac bench weights`: a new weights version reaching `watchers` gRPC weights streams.
-pub fn run_weights(watchers: usize, versions: u64, interval_ms: u64, json: bool) -> Result<()> {
+/// `hac bench weights`: a new weights version reaching `watchers` actors, over gRPC weights
+/// streams or shared memory.
+pub fn run_weights(
+    transport: WeightsTransport,
+    watchers: usize,
+    versions: u64,
+    interval_ms: u64,
+    json: bool,
+) -> Result<()> {
     if watchers == 0 || versions == 0 {
         bail!("--actors and --versions must be at least 1");
     }
     let learner = bench_learner(1)?;
-    let r = crate::bench_grpc::fanout(
-        &learner,
-        watchers,
-        versions,
-        Duration::from_millis(interval_ms),
-    )?;
+    let interval = Duration::from_millis(interval_ms);
+    let r = match transport {
+        WeightsTransport::Grpc => crate::bench_grpc::fanout(&learner, watchers, versions, interval),
+        WeightsTransport::Shm => crate::bench_shm::fanout(&learner, watchers, versions, interval),
+    }?;
     learner.finish("bench over");
     if let Some(learner) = Arc::into_inner(learner) {
         learner.shutdown();
@@ -128,10 +149,12 @@ pub fn run_weights(watchers: usize, versions: u64, interval_ms: u64, json: bool)
     if json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
-        println!("| watchers | versions | snapshot | delivered | delay p50 | delay p99 | max |");
-        println!("| --- | --- | --- | --- | --- | --- | --- |");
         println!(
-            "| {} | {} | {} KiB | {} of {} | {:.0} us | {:.0} us | {:.0} us |",
+            "| transport | watchers | versions | snapshot | delivered | delay p50 | delay p99 | max |"
+        );
+        println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+        println!(
+            "| {transport:?} | {} | {} | {} KiB | {} of {} | {:.0} us | {:.0} us | {:.0} us |",
             r.watchers,
             r.versions,
             r.snapshot_bytes / 1024,
@@ -152,53 +175,69 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
     if !(bench.seconds.is_finite() && bench.seconds > 0.0) {
         bail!("--seconds must be a positive number");
     }
-    let learner = bench_learner(bench.batch)?;
-    if !bench.json {
-        eprintln!(
-            "bench ingest: {:?}, {} actors, batches of {}, window {}, {} s",
-            bench.transport, bench.actors, bench.batch, bench.window, bench.seconds
-        );
-    }
-    let report = match bench.transport {
-        Transport::InProcess => in_process(bench, &learner)?,
-        Transport::Grpc => crate::bench_grpc::ingest(bench, &learner)?,
+    let transports = match bench.transport {
+        Transport::All => vec![Transport::InProcess, Transport::Grpc, Transport::Shm],
+        one => vec![one],
     };
-    learner.finish("bench over");
-    if let Some(learner) = Arc::into_inner(learner) {
-        learner.shutdown();
+    let mut reports = Vec::new();
+    for transport in transports {
+        // A fresh learner each, so that its counters are the bench's.
+        let learner = bench_learner(bench.batch)?;
+        if !bench.json {
+            eprintln!(
+                "bench ingest: {transport:?}, {} actors, batches of {}, window {}, {} s",
+                bench.actors, bench.batch, bench.window, bench.seconds
+            );
+        }
+        let report = match transport {
+            Transport::InProcess => in_process(bench, &learner)?,
+            Transport::Grpc => crate::bench_grpc::ingest(bench, &learner)?,
+            Transport::Shm => crate::bench_shm::ingest(bench, &learner)?,
+            Transport::All => unreachable!("expanded above"),
+        };
+        learner.finish("bench over");
+        if let Some(learner) = Arc::into_inner(learner) {
+            learner.shutdown();
+        }
+        if report.transitions_stored != report.transitions_acked || report.duplicates != 0 {
+            bail!(
+                "{transport:?}: the learner stored {} transitions but {} were acknowledged ({} \
+                 duplicates)",
+                report.transitions_stored,
+                report.transitions_acked,
+                report.duplicates
+            );
+        }
+        reports.push(report);
     }
-    if report.transitions_stored != report.transitions_acked || report.duplicates != 0 {
-        bail!(
-            "the learner stored {} transitions but {} were acknowledged ({} duplicates)",
-            report.transitions_stored,
-            report.transitions_acked,
-            report.duplicates
-        );
-    }
-    print_report(&report, bench.json)
+    print_reports(&reports, bench.json)
 }
 
-fn print_report(r: &IngestReport, json: bool) -> Result<()> {
+fn print_reports(reports: &[IngestReport], json: bool) -> Result<()> {
     if json {
-        println!("{}", serde_json::to_string(r)?);
+        for r in reports {
+            println!("{}", serde_json::to_string(r)?);
+        }
         return Ok(());
     }
     println!(
         "| transport | actors | batch | transitions/s | batches/s | ack p50 | ack p99 | stored = acked |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
-    println!(
-        "| {:?} | {} | {} | {:.0} | {:.0} | {:.0} us | {:.0} us | {} = {} |",
-        r.transport,
-        r.actors,
-        r.batch_transitions,
-        r.transitions_per_s,
-        r.batches_per_s,
-        r.ack_latency_p50_us,
-        r.ack_latency_p99_us,
-        r.transitions_stored,
-        r.transitions_acked
-    );
+    for r in reports {
+        println!(
+            "| {:?} | {} | {} | {:.0} | {:.0} | {:.0} us | {:.0} us | {} = {} |",
+            r.transport,
+            r.actors,
+            r.batch_transitions,
+            r.transitions_per_s,
+            r.batches_per_s,
+            r.ack_latency_p50_us,
+            r.ack_latency_p99_us,
+            r.transitions_stored,
+            r.transitions_acked
+        );
+    }
     Ok(())
 }
 
@@ -262,7 +301,7 @@ fn in_process(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestRepor
     // The learner is fresh: its totals are the bench's.
     let stored = after.transitions;
     Ok(IngestReport {
-        transport: bench.transport,
+        transport: Transport::InProcess,
         actors: bench.actors,
         batch_transitions: bench.batch,
         window: 1,

@@ -21,6 +21,7 @@
 mod bench;
 mod bench_connections;
 mod bench_grpc;
+mod bench_shm;
 mod env_cmd;
 mod experiment;
 mod export;
@@ -119,8 +120,11 @@ enum BenchCommand {
         json: bool,
     },
     /// Weights fan-out: the learner publishes new versions (pendulum, 2 levels) to many
-    /// gRPC weights watchers; prints the publication-to-receipt delay p50/p99.
+    /// actors' weights watchers; prints the publication-to-receipt delay p50/p99.
     Weights {
+        /// How the weights travel: gRPC streams, or shared memory to same-host actors.
+        #[arg(long, value_enum, default_value_t = bench::WeightsTransport::Grpc)]
+        transport: bench::WeightsTransport,
         /// Connected watchers (actors).
         #[arg(long, default_value_t = 32)]
         actors: usize,
@@ -359,11 +363,12 @@ fn main() {
         Command::Render(args) => render::run(&args),
         Command::Export(args) => export::run(&args),
         Command::Bench(BenchCommand::Weights {
+            transport,
             actors,
             versions,
             interval_ms,
             json,
-        }) => bench::run_weights(actors, versions, interval_ms, json),
+        }) => bench::run_weights(transport, actors, versions, interval_ms, json),
         Command::Bench(BenchCommand::Connections {
             actors,
             seconds,

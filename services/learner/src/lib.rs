@@ -12,7 +12,8 @@
 //! Life of a run: validate the config (the whole file: [`config_section`]; token and TLS files),
 //! start the learner (or resume it from a checkpoint), bind `--listen` and print
 //! `listening on <addr>` (one line on stdout, for scripts; then `metrics on <addr>` with
-//! `--metrics-listen`), serve (health `SERVING`), checkpointing as configured. When the run
+//! `--metrics-listen`), serve (health `SERVING`; with `--shm`, shared memory for actors on this host as well, see
+//! `hac_transport::shm`), checkpointing as configured. When the run
 //! finishes by itself (episode budget or `stop_at`), or on SIGINT/SIGTERM (which finishes the run
 //! at once), health turns `NOT_SERVING` and the learner keeps serving for `--grace-period` so
 //! that actors receive the final weights and stop; then it stops accepting, ends open streams,
@@ -37,6 +38,7 @@ use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions};
 use hac_run::daemon::{ConfigArgs, Section};
 use hac_transport::grpc::{ServerOptions, serve};
+use hac_transport::shm::{Namespace, ShmServer, ShmServerOptions};
 use tokio::net::TcpListener;
 use tokio::signal::unix::{Signal, SignalKind, signal};
 use tokio::sync::watch;
@@ -111,6 +113,8 @@ pub struct LearnerArgs {
     pub ops: OpsArgs,
     #[command(flatten)]
     pub checkpoint: CheckpointArgs,
+    #[command(flatten)]
+    pub shm: ShmArgs,
 }
 
 /// The learner's table of the config file, `[learner]`: every flag of [`LearnerArgs`] but the
@@ -120,6 +124,43 @@ pub fn config_section() -> Section {
         "learner",
         LearnerArgs::augment_args(clap::Command::new("learner")),
     )
+}
+
+/// Shared memory beside gRPC (docs/SHM.md).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ShmArgs {
+    /// Also serve actors on this host over shared memory (iceoryx2, /dev/shm) beside gRPC;
+    /// actors with `--transport auto` (their default) or `shm` use it [default: off].
+    #[arg(long = "shm", env = "HAC_SHM")]
+    pub enabled: bool,
+    /// Shared memory: most actors attached at once (sizes the learner's share of /dev/shm;
+    /// more actors fall back to gRPC).
+    #[arg(long = "shm-max-actors", env = "HAC_SHM_MAX_ACTORS", value_name = "N",
+          default_value_t = 32, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    pub max_actors: u64,
+    /// Shared memory: messages each actor may have unacknowledged (sizes each actor's share of
+    /// /dev/shm).
+    #[arg(long = "shm-window", env = "HAC_SHM_WINDOW", value_name = "N",
+          default_value_t = 32, value_parser = clap::value_parser!(u64).range(1..=4096))]
+    pub window: u64,
+}
+
+impl ShmArgs {
+    /// Starts the shared-memory server for the run served at `addr`, if enabled.
+    fn start(&self, learner: &Arc<Learner>, addr: SocketAddr) -> Result<Option<ShmServer>> {
+        if !self.enabled {
+            return Ok(None);
+        }
+        let namespace = Namespace::for_run(&learner.status().run_config_digest, addr);
+        let options = ShmServerOptions {
+            max_actors: usize::try_from(self.max_actors).context("--shm-max-actors")?,
+            window: usize::try_from(self.window).context("--shm-window")?,
+            ..ShmServerOptions::default()
+        };
+        let server = ShmServer::start(learner.clone(), namespace, options)
+            .context("serving shared memory (--shm)")?;
+        Ok(Some(server))
+    }
 }
 
 /// A flag value in seconds (fractions allowed).
@@ -168,6 +209,7 @@ impl LearnerArgs {
                 .context("invalid value for --max-message-bytes")?,
             drain_timeout: self.drain_timeout,
             security: self.ops.security()?,
+            shm_offer: None,
         })
     }
 }
@@ -282,7 +324,7 @@ impl Signals {
 async fn serve_run(
     learner: Arc<Learner>,
     args: &LearnerArgs,
-    options: ServerOptions,
+    mut options: ServerOptions,
     dir: &mut RunDir,
     checkpoints: &mut Checkpoints,
 ) -> Result<()> {
@@ -293,6 +335,9 @@ async fn serve_run(
     let addr = listener.local_addr().context("reading the bound address")?;
     let (stop, mut stopped) = watch::channel(false);
     let metrics = args.ops.start_metrics(&learner, stop.subscribe()).await?;
+    // Named after the bound address: stopped (released) after the gRPC server below.
+    let shm = args.shm.start(&learner, addr)?;
+    options.shm_offer = shm.as_ref().map(ShmServer::offer);
     {
         let mut stdout = std::io::stdout().lock();
         writeln!(stdout, "listening on {addr}")?;
@@ -362,6 +407,9 @@ async fn serve_run(
         .await
         .context("the server task failed")?
         .context("serving actors")?;
+    if let Some(shm) = shm {
+        shm.stop();
+    }
     if let Some((_, metrics)) = metrics {
         metrics
             .await

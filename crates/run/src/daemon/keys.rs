@@ -23,6 +23,9 @@ pub const LEARNER: &[&str] = &[
     "keep_checkpoints",
     "checkpoint_replay",
     "resume",
+    "shm",
+    "shm_max_actors",
+    "shm_window",
 ];
 
 /// `[actor]`.
@@ -45,4 +48,6 @@ pub const ACTOR: &[&str] = &[
     "tls_domain",
     "tls_cert",
     "tls_key",
+    "transport",
+    "shm_overflow",
 ];

@@ -72,6 +72,10 @@ pub struct GrpcLinkOptions {
     pub token: Option<Token>,
     /// TLS to the learner (its URL must be `https://`, or a bare `host:port`), if set.
     pub tls: Option<ClientTls>,
+    /// Keep a `WatchWeights` stream open from registration on. Off for a link that only carries
+    /// the control plane beside shared memory (which brings the weights); see
+    /// [`GrpcLink::watch_weights`].
+    pub watch_weights: bool,
 }
 
 impl Default for GrpcLinkOptions {
@@ -89,6 +93,7 @@ impl Default for GrpcLinkOptions {
             jitter_seed: (u64::from(std::process::id()) << 32) | u64::from(nanos),
             token: None,
             tls: None,
+            watch_weights: true,
         }
     }
 }
@@ -122,7 +127,8 @@ pub struct GrpcLink {
     channel: LinkChannel,
     /// `Some` until drop.
     runtime: Option<Runtime>,
-    tasks_started: bool,
+    ingest_started: bool,
+    weights_started: bool,
 }
 
 #[derive(Debug)]
@@ -219,8 +225,19 @@ impl GrpcLink {
             shared,
             channel,
             runtime: Some(runtime),
-            tasks_started: false,
+            ingest_started: false,
+            weights_started: false,
         })
+    }
+
+    /// Starts the `WatchWeights` stream if it is not running (a link made with
+    /// `watch_weights: false` that turns out to need it). Takes effect once registered.
+    pub fn watch_weights(&mut self) {
+        if self.ingest_started && !self.weights_started {
+            self.weights_started = true;
+            let task = weights_task(self.shared.clone(), self.channel.clone());
+            self.runtime().spawn(task);
+        }
     }
 
     /// Messages sent and not yet acknowledged.
@@ -261,11 +278,13 @@ impl ActorLink for GrpcLink {
             renumber(&mut outbox, &shared.stats, admission.incarnation);
         }
         shared.stats.learner_version.store(0, Ordering::Relaxed);
-        if !self.tasks_started {
-            self.tasks_started = true;
-            let runtime = self.runtime();
-            runtime.spawn(ingest_task(shared.clone(), channel.clone()));
-            runtime.spawn(weights_task(shared, channel));
+        if !self.ingest_started {
+            self.ingest_started = true;
+            self.runtime()
+                .spawn(ingest_task(shared.clone(), channel.clone()));
+            if shared.options.watch_weights {
+                self.watch_weights();
+            }
         }
         Ok(admission)
     }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use hac_learner::{IngestError, Learner, RegisterError, RejectReason, RoomError};
-use hac_proto::{Evaluation, Registration, WeightsWatch, WireError, decode_ingest, pb};
+use hac_proto::{Evaluation, Registration, ShmOffer, WeightsWatch, WireError, decode_ingest, pb};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -36,6 +36,9 @@ pub struct ServerOptions {
     pub drain_timeout: Duration,
     /// The bearer token and TLS (default: neither).
     pub security: ServerSecurity,
+    /// Shared memory served beside gRPC ([`ShmServer::offer`](crate::shm::ShmServer::offer)):
+    /// announced at registration to actors that list the `shm` transport.
+    pub shm_offer: Option<ShmOffer>,
 }
 
 impl Default for ServerOptions {
@@ -44,6 +47,7 @@ impl Default for ServerOptions {
             max_message_bytes: 64 << 20,
             drain_timeout: Duration::from_secs(5),
             security: ServerSecurity::default(),
+            shm_offer: None,
         }
     }
 }
@@ -63,6 +67,7 @@ const ROOM_WAIT: Duration = Duration::from_millis(250);
 pub struct LearnerGrpc {
     learner: Arc<Learner>,
     closing: Arc<watch::Sender<bool>>,
+    shm_offer: Option<Arc<ShmOffer>>,
 }
 
 impl LearnerGrpc {
@@ -70,7 +75,14 @@ impl LearnerGrpc {
         Self {
             learner,
             closing: Arc::new(watch::Sender::new(false)),
+            shm_offer: None,
         }
+    }
+
+    /// Announces `offer` at registration to every actor that lists the `shm` transport.
+    pub fn with_shm_offer(mut self, offer: Option<ShmOffer>) -> Self {
+        self.shm_offer = offer.map(Arc::new);
+        self
     }
 
     /// Ends every open stream (ingest streams with `UNAVAILABLE`, or `finished` if the run is
@@ -105,7 +117,7 @@ pub async fn serve(
     options: ServerOptions,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), tonic::transport::Error> {
-    let service = LearnerGrpc::new(learner.clone());
+    let service = LearnerGrpc::new(learner.clone()).with_shm_offer(options.shm_offer.clone());
     let health = Health::new(LEARNER_SERVICE).await;
     let status = StatusGrpc::new(learner.clone(), service.closing.subscribe());
     let counter = learner.clone();
@@ -390,10 +402,17 @@ impl pb::learner_server::Learner for LearnerGrpc {
     ) -> Result<Response<pb::RegisterResponse>, Status> {
         let registration =
             Registration::try_from(request.into_inner()).map_err(|e| self.refuse(e.into()))?;
-        let admission = self
+        let wants_shm = registration
+            .transports
+            .iter()
+            .any(|t| t == crate::shm::TRANSPORT);
+        let mut admission = self
             .learner
             .register(registration)
             .map_err(|e| self.refuse(e.into()))?;
+        if wants_shm {
+            admission.shm = self.shm_offer.as_deref().cloned();
+        }
         Ok(Response::new(admission.into()))
     }
 

@@ -1,0 +1,416 @@
+//! Shared memory with the real `hac` binary: a learner serving gRPC and iceoryx2 at once, with
+//! actors on both; a shared-memory actor killed with SIGKILL and started again; two runs side by
+//! side on one host.
+
+use std::io::{BufRead as _, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+const DEADLINE: Duration = Duration::from_secs(150);
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hac-shm-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// `hac <args>` with stderr to `<logs>/<name>.log`.
+fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
+    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
+    Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .env_remove("HAC_TRANSPORT")
+        .env_remove("HAC_SHM")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(log)
+        .spawn()
+        .expect("the hac binary runs")
+}
+
+/// Kills what still runs when a test fails, so that nothing outlives it.
+struct Processes(Vec<(String, Child)>);
+
+impl Processes {
+    fn wait_all(&mut self, logs: &Path) -> Vec<(String, ExitStatus)> {
+        let started = Instant::now();
+        let mut done = Vec::new();
+        while done.len() < self.0.len() {
+            for (name, child) in &mut self.0 {
+                if done.iter().any(|(n, _)| n == name) {
+                    continue;
+                }
+                if let Some(status) = child.try_wait().unwrap() {
+                    done.push((name.clone(), status));
+                }
+            }
+            if started.elapsed() > DEADLINE {
+                panic!(
+                    "still running after {DEADLINE:?} (finished: {done:?})\n{}",
+                    all_logs(logs)
+                );
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        done
+    }
+
+    fn all_succeed(&mut self, logs: &Path) {
+        for (name, status) in self.wait_all(logs) {
+            assert!(
+                status.success(),
+                "{name} exited with {status}\n{}",
+                all_logs(logs)
+            );
+        }
+    }
+}
+
+impl Drop for Processes {
+    fn drop(&mut self) {
+        for (_, child) in &mut self.0 {
+            if child.try_wait().ok().flatten().is_none() {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
+}
+
+fn all_logs(logs: &Path) -> String {
+    let mut text = String::new();
+    for entry in std::fs::read_dir(logs).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "log") {
+            let log = std::fs::read_to_string(&path).unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(30).collect();
+            text += &format!("--- {}\n", path.display());
+            for line in tail.into_iter().rev() {
+                text += line;
+                text.push('\n');
+            }
+        }
+    }
+    text
+}
+
+fn log(logs: &Path, name: &str) -> String {
+    std::fs::read_to_string(logs.join(format!("{name}.log"))).unwrap()
+}
+
+/// Starts `hac learner --shm` with `args` and returns it with its URL.
+fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
+    let mut all = vec!["learner", "--shm", "--listen", "127.0.0.1:0"];
+    all.extend_from_slice(args);
+    let mut child = hac(&all, logs, name);
+    let mut first_line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first_line)
+        .unwrap();
+    let addr = first_line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| {
+            panic!(
+                "expected `listening on <addr>`, got {first_line:?}\n{}",
+                all_logs(logs)
+            )
+        })
+        .to_string();
+    (child, format!("http://{addr}"))
+}
+
+fn actor(url: &str, name: &str, extra: &[&str], logs: &Path) -> (String, Child) {
+    let mut args = vec!["actor", "--learner", url, "--id", name];
+    args.extend_from_slice(extra);
+    (name.to_string(), hac(&args, logs, name))
+}
+
+fn summary(out: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn count(summary: &serde_json::Value, key: &str) -> u64 {
+    summary[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("{key} in {summary}"))
+}
+
+fn rejected(summary: &serde_json::Value) -> u64 {
+    summary["rejected"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum()
+}
+
+/// Refusals other than `finished` (messages still in flight when the run ended, as over gRPC).
+fn refused_while_running(summary: &serde_json::Value) -> Vec<String> {
+    summary["rejected"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .filter(|reason| *reason != "finished")
+        .cloned()
+        .collect()
+}
+
+/// Exactly once: every message that reached the learner was stored, a duplicate of a stored
+/// one, or refused; every transition counted at ingest is in replay once.
+fn assert_exactly_once(s: &serde_json::Value) {
+    assert_eq!(
+        count(s, "messages"),
+        count(s, "batches") + count(s, "episodes_ingested") + count(s, "duplicates") + rejected(s),
+        "{s}"
+    );
+    assert_eq!(
+        count(s, "transitions"),
+        count(s, "transitions_in_replay"),
+        "{s}"
+    );
+}
+
+const USING_SHM: &str = "sending over shared memory";
+
+#[test]
+fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car() {
+    let dir = scratch("run");
+    let out = dir.join("out");
+    let (learner, url) = learner(
+        &[
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "100",
+            "--set",
+            "test_episodes=20",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &dir,
+        "learner",
+    );
+    let mut processes = Processes(vec![("learner".into(), learner)]);
+    // The evaluator first: a learner with an evaluator waits for the last evaluation.
+    processes.0.push(actor(
+        &url,
+        "evaluator",
+        &["--role", "evaluator", "--eval-every", "20"],
+        &dir,
+    ));
+    processes
+        .0
+        .push(actor(&url, "shm-0", &["--transport", "shm"], &dir));
+    processes
+        .0
+        .push(actor(&url, "shm-1", &["--transport", "shm"], &dir));
+    processes
+        .0
+        .push(actor(&url, "grpc-0", &["--transport", "grpc"], &dir));
+    processes.all_succeed(&dir);
+
+    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert!(rows.len() >= 2, "at least one evaluation:\n{csv}");
+    let last_episodes: u64 = rows
+        .last()
+        .unwrap()
+        .split(',')
+        .nth(1)
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(
+        last_episodes >= 100,
+        "the last evaluation covers the budget:\n{csv}"
+    );
+    // Learned from nothing (untrained greedy agents never reach the flag): the best evaluation
+    // must, as in the gRPC-only run.
+    let best = rows[1..]
+        .iter()
+        .map(|r| r.split(',').nth(3).unwrap().parse::<f32>().unwrap())
+        .fold(0.0, f32::max);
+    assert!(best >= 0.1, "best evaluation {best}:\n{csv}");
+    let s = summary(&out);
+    assert_exactly_once(&s);
+    assert!(refused_while_running(&s).is_empty(), "{s}");
+
+    // Who used what: the shm trainers and the evaluator (auto) shared memory, the other gRPC.
+    let learner_log = log(&dir, "learner");
+    assert!(
+        learner_log.contains("serving shared memory"),
+        "{learner_log}"
+    );
+    assert_eq!(
+        learner_log.matches("actor registered").count(),
+        4,
+        "{learner_log}"
+    );
+    for name in ["shm-0", "shm-1", "evaluator"] {
+        assert!(
+            log(&dir, name).contains(USING_SHM),
+            "{name}\n{}",
+            log(&dir, name)
+        );
+    }
+    assert!(!log(&dir, "grpc-0").contains(USING_SHM));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Waits until `path` holds at least `lines` lines.
+fn wait_for_lines(path: &Path, lines: usize, logs: &Path) {
+    let started = Instant::now();
+    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < lines {
+        assert!(
+            started.elapsed() < DEADLINE,
+            "{} never reached {lines} lines\n{}",
+            path.display(),
+            all_logs(logs)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_shm_trainer_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
+    let dir = scratch("kill");
+    let out = dir.join("out");
+    let (learner, url) = learner(
+        &[
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "80",
+            "--set",
+            "test_episodes=5",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &dir,
+        "learner",
+    );
+    let mut processes = Processes(vec![("learner".into(), learner)]);
+    processes.0.push(actor(
+        &url,
+        "evaluator",
+        &["--role", "evaluator", "--eval-every", "20"],
+        &dir,
+    ));
+    for name in ["trainer-0", "trainer-1"] {
+        processes
+            .0
+            .push(actor(&url, name, &["--transport", "shm"], &dir));
+    }
+    // Mid-run: once the first evaluation is on the curve (20 episodes trained).
+    wait_for_lines(&out.join("curve.csv"), 2, &dir);
+    let (_, victim) = processes
+        .0
+        .iter_mut()
+        .find(|(n, _)| n == "trainer-1")
+        .unwrap();
+    victim.kill().unwrap(); // SIGKILL: its shared memory stays behind, its node is dead
+    assert!(!victim.wait().unwrap().success());
+    processes.0.retain(|(n, _)| n != "trainer-1");
+    // Started again at once, with the same id: it must not trip over what the dead one left.
+    std::fs::rename(dir.join("trainer-1.log"), dir.join("trainer-1-killed.log")).unwrap();
+    let (_, again) = actor(&url, "trainer-1", &["--transport", "shm"], &dir);
+    processes.0.push(("trainer-1-again".into(), again));
+    processes.all_succeed(&dir);
+
+    let s = summary(&out);
+    assert_exactly_once(&s);
+    assert!(
+        count(&s, "episodes") >= 80,
+        "training went on to the budget: {s}"
+    );
+    let learner_log = log(&dir, "learner");
+    assert_eq!(
+        learner_log
+            .matches("actor registered actor=trainer-1")
+            .count(),
+        2,
+        "{learner_log}"
+    );
+    let again = log(&dir, "trainer-1");
+    assert!(
+        again.contains(USING_SHM),
+        "the restarted trainer uses shared memory\n{again}"
+    );
+
+    assert!(again.contains("actor stopped"), "{again}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn two_runs_side_by_side_on_one_host_do_not_see_each_others_data() {
+    let dir = scratch("pair");
+    // The same run twice (same config, same digest), each learner with its own trainer that
+    // shares memory with it.
+    let run = [
+        "--env",
+        "mountain-car",
+        "--levels",
+        "2",
+        "--episodes",
+        "30",
+        "--set",
+        "test_episodes=5",
+    ];
+    let mut processes = Processes(Vec::new());
+    let mut outs = Vec::new();
+    for (learner_name, actor_name) in [("learner-a", "trainer-a"), ("learner-b", "trainer-b")] {
+        let out = dir.join(learner_name);
+        let mut args = run.to_vec();
+        args.extend_from_slice(&["--out", out.to_str().unwrap()]);
+        let (child, url) = learner(&args, &dir, learner_name);
+        processes.0.push((learner_name.into(), child));
+        processes
+            .0
+            .push(actor(&url, actor_name, &["--transport", "shm"], &dir));
+        outs.push((out, learner_name, actor_name));
+    }
+    processes.all_succeed(&dir);
+
+    for (out, learner_name, actor_name) in &outs {
+        let s = summary(out);
+        assert_exactly_once(&s);
+        // A message of the other run would be refused here as from an unknown actor.
+        assert!(refused_while_running(&s).is_empty(), "{learner_name}: {s}");
+        assert!(count(&s, "episodes_ingested") >= 30, "{learner_name}: {s}");
+        let learner_log = log(&dir, learner_name);
+        assert_eq!(
+            learner_log.matches("actor registered").count(),
+            1,
+            "{learner_log}"
+        );
+        assert!(learner_log.contains(&format!("actor registered actor={actor_name}")));
+        assert!(log(&dir, actor_name).contains(USING_SHM));
+    }
+    // Two namespaces: the same digest, two addresses.
+    let namespace = |name: &str| {
+        let text = log(&dir, name);
+        let line = text
+            .lines()
+            .find(|l| l.contains("serving shared memory"))
+            .unwrap_or_else(|| panic!("{text}"))
+            .to_string();
+        line.split("namespace=")
+            .nth(1)
+            .and_then(|rest| rest.split_whitespace().next())
+            .map(str::to_string)
+            .unwrap_or_else(|| panic!("{line}"))
+    };
+    let (a, b) = (namespace("learner-a"), namespace("learner-b"));
+    assert_ne!(a, b);
+    assert_eq!(a.split('-').next(), b.split('-').next(), "same run digest");
+    let _ = std::fs::remove_dir_all(&dir);
+}
