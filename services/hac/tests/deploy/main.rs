@@ -316,7 +316,10 @@ fn the_daemons_serve_every_probed_health_service() {
     let stdout = learner.stdout.take().unwrap();
     children.0.push(learner);
     let mut line = String::new();
-    BufReader::new(stdout).read_line(&mut line).unwrap();
+    // Kept open until the end: the learner prints more lines (`metrics on ...`) and must not
+    // meet a closed pipe.
+    let mut stdout = BufReader::new(stdout);
+    stdout.read_line(&mut line).unwrap();
     let Some(addr) = line.trim().strip_prefix("listening on ") else {
         panic!(
             "the learner did not start with deploy/hac.toml: {}",
@@ -353,6 +356,7 @@ fn the_daemons_serve_every_probed_health_service() {
         }
     }
     drop(children);
+    drop(stdout);
     if !problems.is_empty() {
         for log in ["learner.log", "actor.log"] {
             let text = std::fs::read_to_string(dir.join(log)).unwrap_or_default();
