@@ -3,34 +3,17 @@
 //! killed with SIGKILL and started again, a learner killed with SIGKILL and started again on the
 //! same address.
 
-use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Child, ExitStatus};
 use std::time::{Duration, Instant};
+mod common;
+
+use common::{all_logs, count, hac, listening_addr, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "hac-distributed-test-{}-{name}",
-        std::process::id()
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-/// `hac <args>` with stderr to `<logs>/<name>.log`.
-fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
-    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .expect("the hac binary runs")
+    common::scratch("hac-distributed-test", name)
 }
 
 /// Kills what still runs when a test fails, so that nothing outlives it.
@@ -73,23 +56,6 @@ impl Drop for Processes {
     }
 }
 
-fn all_logs(logs: &Path) -> String {
-    let mut text = String::new();
-    for entry in std::fs::read_dir(logs).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "log") {
-            let log = std::fs::read_to_string(&path).unwrap_or_default();
-            let tail: Vec<&str> = log.lines().rev().take(30).collect();
-            text += &format!("--- {}\n", path.display());
-            for line in tail.into_iter().rev() {
-                text += line;
-                text.push('\n');
-            }
-        }
-    }
-    text
-}
-
 #[test]
 fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     let dir = scratch("run");
@@ -115,20 +81,8 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         &dir,
         "learner",
     );
-    let mut first_line = String::new();
-    BufReader::new(learner.stdout.take().unwrap())
-        .read_line(&mut first_line)
-        .unwrap();
+    let addr = listening_addr(&mut learner, &dir);
     processes.0.push(("learner".into(), learner));
-    let addr = first_line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| {
-            panic!(
-                "expected `listening on <addr>`, got {first_line:?}\n{}",
-                all_logs(&dir)
-            )
-        });
     let url = format!("http://{addr}");
 
     // The evaluator first: a learner with an evaluator waits for the last evaluation.
@@ -203,32 +157,8 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
 /// Starts `hac learner` with `args` and returns it with its `host:port`.
 fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     let mut child = hac(args, logs, name);
-    let mut first_line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut first_line)
-        .unwrap();
-    let addr = first_line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| {
-            panic!(
-                "expected `listening on <addr>`, got {first_line:?}\n{}",
-                all_logs(logs)
-            )
-        })
-        .to_string();
+    let addr = listening_addr(&mut child, logs);
     (child, addr)
-}
-
-fn summary(out: &Path) -> serde_json::Value {
-    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
-    serde_json::from_str(&text).unwrap()
-}
-
-fn count(summary: &serde_json::Value, key: &str) -> u64 {
-    summary[key]
-        .as_u64()
-        .unwrap_or_else(|| panic!("{key} in {summary}"))
 }
 
 /// Waits until `path` holds at least `lines` lines.

@@ -3,50 +3,23 @@
 //! continues from the one before (weights version, counters, learning curve), gets its actors
 //! back and finishes the run; the run's policy then exports from its checkpoints.
 
-use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Child, Command, ExitStatus};
 use std::time::{Duration, Instant};
+mod common;
+
+use common::{all_logs, hac, listening_addr};
 
 const DEADLINE: Duration = Duration::from_secs(240);
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hac-resume-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-/// `hac <args>` with stderr to `<logs>/<name>.log`.
-fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
-    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .expect("the hac binary runs")
+    common::scratch("hac-resume-test", name)
 }
 
 /// Starts `hac learner` with `args` and returns it with its `host:port`.
 fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     let mut child = hac(args, logs, name);
-    let mut first_line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut first_line)
-        .unwrap();
-    let addr = first_line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| {
-            panic!(
-                "expected `listening on <addr>`, got {first_line:?}\n{}",
-                all_logs(logs)
-            )
-        })
-        .to_string();
+    let addr = listening_addr(&mut child, logs);
     (child, addr)
 }
 
@@ -91,23 +64,6 @@ impl Drop for Processes {
             }
         }
     }
-}
-
-fn all_logs(logs: &Path) -> String {
-    let mut text = String::new();
-    for entry in std::fs::read_dir(logs).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "log") {
-            let log = std::fs::read_to_string(&path).unwrap_or_default();
-            let tail: Vec<&str> = log.lines().rev().take(30).collect();
-            text += &format!("--- {}\n", path.display());
-            for line in tail.into_iter().rev() {
-                text += line;
-                text.push('\n');
-            }
-        }
-    }
-    text
 }
 
 /// The complete checkpoints (named `ckpt-*`), oldest first.

@@ -2,33 +2,17 @@
 //! actors on both; a shared-memory actor killed with SIGKILL and started again; two runs side by
 //! side on one host.
 
-use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Child, ExitStatus};
 use std::time::{Duration, Instant};
+mod common;
+
+use common::{all_logs, count, hac, listening_addr, summary};
 
 const DEADLINE: Duration = Duration::from_secs(150);
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hac-shm-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-/// `hac <args>` with stderr to `<logs>/<name>.log`.
-fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
-    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .env_remove("HAC_TRANSPORT")
-        .env_remove("HAC_SHM")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .expect("the hac binary runs")
+    common::scratch("hac-shm-test", name)
 }
 
 /// Kills what still runs when a test fails, so that nothing outlives it.
@@ -80,23 +64,6 @@ impl Drop for Processes {
     }
 }
 
-fn all_logs(logs: &Path) -> String {
-    let mut text = String::new();
-    for entry in std::fs::read_dir(logs).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "log") {
-            let log = std::fs::read_to_string(&path).unwrap_or_default();
-            let tail: Vec<&str> = log.lines().rev().take(30).collect();
-            text += &format!("--- {}\n", path.display());
-            for line in tail.into_iter().rev() {
-                text += line;
-                text.push('\n');
-            }
-        }
-    }
-    text
-}
-
 fn log(logs: &Path, name: &str) -> String {
     std::fs::read_to_string(logs.join(format!("{name}.log"))).unwrap()
 }
@@ -106,20 +73,7 @@ fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     let mut all = vec!["learner", "--shm", "--listen", "127.0.0.1:0"];
     all.extend_from_slice(args);
     let mut child = hac(&all, logs, name);
-    let mut first_line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut first_line)
-        .unwrap();
-    let addr = first_line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| {
-            panic!(
-                "expected `listening on <addr>`, got {first_line:?}\n{}",
-                all_logs(logs)
-            )
-        })
-        .to_string();
+    let addr = listening_addr(&mut child, logs);
     (child, format!("http://{addr}"))
 }
 
@@ -127,17 +81,6 @@ fn actor(url: &str, name: &str, extra: &[&str], logs: &Path) -> (String, Child) 
     let mut args = vec!["actor", "--learner", url, "--id", name];
     args.extend_from_slice(extra);
     (name.to_string(), hac(&args, logs, name))
-}
-
-fn summary(out: &Path) -> serde_json::Value {
-    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
-    serde_json::from_str(&text).unwrap()
-}
-
-fn count(summary: &serde_json::Value, key: &str) -> u64 {
-    summary[key]
-        .as_u64()
-        .unwrap_or_else(|| panic!("{key} in {summary}"))
 }
 
 fn rejected(summary: &serde_json::Value) -> u64 {

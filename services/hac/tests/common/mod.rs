@@ -1,0 +1,78 @@
+//! What the real-process tests share: scratch directories, starting `hac` with its stderr in a
+//! log, the learner's `listening on <addr>` line, log tails for failure messages, and the run's
+//! `summary.json`. Each test file uses part of it.
+#![allow(dead_code)]
+
+use std::io::{BufRead as _, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+/// A fresh directory `<tmp>/<prefix>-<pid>-<name>`.
+pub fn scratch(prefix: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("{prefix}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// `hac <args>` with stderr to `<logs>/<name>.log`.
+pub fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
+    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
+    Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(log)
+        .spawn()
+        .expect("the hac binary runs")
+}
+
+/// The `host:port` of a learner's first stdout line, `listening on <addr>`.
+pub fn listening_addr(learner: &mut Child, logs: &Path) -> String {
+    let mut first_line = String::new();
+    BufReader::new(learner.stdout.take().unwrap())
+        .read_line(&mut first_line)
+        .unwrap();
+    first_line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| {
+            panic!(
+                "expected `listening on <addr>`, got {first_line:?}\n{}",
+                all_logs(logs)
+            )
+        })
+        .to_string()
+}
+
+/// The last 30 lines of every `*.log` in `logs`.
+pub fn all_logs(logs: &Path) -> String {
+    let mut text = String::new();
+    for entry in std::fs::read_dir(logs).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "log") {
+            let log = std::fs::read_to_string(&path).unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(30).collect();
+            text += &format!("--- {}\n", path.display());
+            for line in tail.into_iter().rev() {
+                text += line;
+                text.push('\n');
+            }
+        }
+    }
+    text
+}
+
+/// The run directory's `summary.json`.
+pub fn summary(out: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+/// A counter of `summary.json`.
+pub fn count(summary: &serde_json::Value, key: &str) -> u64 {
+    summary[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("{key} in {summary}"))
+}
