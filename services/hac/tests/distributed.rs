@@ -4,56 +4,16 @@
 //! same address.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, ExitStatus};
+use std::process::Child;
 use std::time::{Duration, Instant};
 mod common;
 
-use common::{all_logs, count, hac, listening_addr, summary};
+use common::{Processes, all_logs, count, hac, listening_addr, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-distributed-test", name)
-}
-
-/// Kills what still runs when a test fails, so that nothing outlives it.
-struct Processes(Vec<(String, Child)>);
-
-impl Processes {
-    /// Waits for every process to exit, up to the deadline.
-    fn wait_all(&mut self, logs: &Path) -> Vec<(String, ExitStatus)> {
-        let started = Instant::now();
-        let mut done = Vec::new();
-        while done.len() < self.0.len() {
-            for (name, child) in &mut self.0 {
-                if done.iter().any(|(n, _)| n == name) {
-                    continue;
-                }
-                if let Some(status) = child.try_wait().unwrap() {
-                    done.push((name.clone(), status));
-                }
-            }
-            if started.elapsed() > DEADLINE {
-                panic!(
-                    "still running after {DEADLINE:?} (finished: {done:?})\n{}",
-                    all_logs(logs)
-                );
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        done
-    }
-}
-
-impl Drop for Processes {
-    fn drop(&mut self) {
-        for (_, child) in &mut self.0 {
-            if child.try_wait().ok().flatten().is_none() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
-    }
 }
 
 #[test]
@@ -98,7 +58,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
 
-    let exits = processes.wait_all(&dir);
+    let exits = processes.wait_all(&dir, DEADLINE);
     for (name, status) in &exits {
         assert!(
             status.success(),
@@ -240,7 +200,7 @@ fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
         ),
     ));
 
-    for (name, status) in processes.wait_all(&dir) {
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
         assert!(
             status.success(),
             "{name} exited with {status}\n{}",
@@ -347,7 +307,7 @@ fn actors_reconnect_by_themselves_to_a_restarted_learner() {
     assert_eq!(addr_again, addr);
     processes.0.push(("learner-2".into(), second));
 
-    for (name, status) in processes.wait_all(&dir) {
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
         assert!(
             status.success(),
             "{name} exited with {status}\n{}",

@@ -4,7 +4,7 @@
 
 use std::io::{BufRead as _, BufReader, Read as _};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, ExitStatus, Output, Stdio};
+use std::process::{Child, ChildStdout, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use hac_proto::pb;
@@ -19,6 +19,10 @@ use tonic_reflection::pb::v1::ServerReflectionRequest;
 use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
 use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
 use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+
+mod common;
+
+use common::{Processes, all_logs};
 
 const DEADLINE: Duration = Duration::from_secs(180);
 
@@ -62,65 +66,10 @@ fn hac_output(args: &[&str], env: &[(&str, &str)]) -> Output {
         .expect("the hac binary runs")
 }
 
-/// Kills what still runs when a test fails, so that nothing outlives it.
-struct Processes(Vec<(String, Child)>);
-
 impl Processes {
     fn get(&mut self, name: &str) -> &mut Child {
         &mut self.0.iter_mut().find(|(n, _)| n == name).unwrap().1
     }
-
-    /// Waits for every process to exit, up to the deadline.
-    fn wait_all(&mut self, logs: &Path) -> Vec<(String, ExitStatus)> {
-        let started = Instant::now();
-        let mut done = Vec::new();
-        while done.len() < self.0.len() {
-            for (name, child) in &mut self.0 {
-                if done.iter().any(|(n, _)| n == name) {
-                    continue;
-                }
-                if let Some(status) = child.try_wait().unwrap() {
-                    done.push((name.clone(), status));
-                }
-            }
-            if started.elapsed() > DEADLINE {
-                panic!(
-                    "still running after {DEADLINE:?} (finished: {done:?})\n{}",
-                    all_logs(logs)
-                );
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        done
-    }
-}
-
-impl Drop for Processes {
-    fn drop(&mut self) {
-        for (_, child) in &mut self.0 {
-            if child.try_wait().ok().flatten().is_none() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
-    }
-}
-
-fn all_logs(logs: &Path) -> String {
-    let mut text = String::new();
-    for entry in std::fs::read_dir(logs).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "log") {
-            let log = std::fs::read_to_string(&path).unwrap_or_default();
-            let tail: Vec<&str> = log.lines().rev().take(30).collect();
-            text += &format!("--- {}\n", path.display());
-            for line in tail.into_iter().rev() {
-                text += line;
-                text.push('\n');
-            }
-        }
-    }
-    text
 }
 
 /// The next stdout line of `child`, which must start with `prefix`; the rest of it.
@@ -568,7 +517,7 @@ fn a_real_run_reports_coherent_status_metrics_health_and_reflection_then_drains_
     let draining = status_json(&["--learner", &addr], &[])["learner"].clone();
     assert_eq!(draining["state"], "draining");
 
-    for (name, status) in processes.wait_all(&dir) {
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
         assert!(
             status.success(),
             "{name} exited with {status}\n{}",
@@ -802,7 +751,7 @@ fn a_run_behind_a_token_and_tls_keeps_strangers_out() {
         args.extend_from_slice(extra);
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
-    for (name, status) in processes.wait_all(&dir) {
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
         assert!(
             status.success(),
             "{name} exited with {status}\n{}",

@@ -4,11 +4,11 @@
 //! back and finishes the run; the run's policy then exports from its checkpoints.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 mod common;
 
-use common::{all_logs, hac, listening_addr};
+use common::{Processes, all_logs, hac, listening_addr};
 
 const DEADLINE: Duration = Duration::from_secs(240);
 
@@ -23,46 +23,10 @@ fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     (child, addr)
 }
 
-/// Kills what still runs when a test fails, so that nothing outlives it.
-struct Processes(Vec<(String, Child)>);
-
 impl Processes {
-    fn wait_all(&mut self, logs: &Path) -> Vec<(String, ExitStatus)> {
-        let started = Instant::now();
-        let mut done = Vec::new();
-        while done.len() < self.0.len() {
-            for (name, child) in &mut self.0 {
-                if done.iter().any(|(n, _)| n == name) {
-                    continue;
-                }
-                if let Some(status) = child.try_wait().unwrap() {
-                    done.push((name.clone(), status));
-                }
-            }
-            assert!(
-                started.elapsed() < DEADLINE,
-                "still running after {DEADLINE:?} (finished: {done:?})\n{}",
-                all_logs(logs)
-            );
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        done
-    }
-
     fn take(&mut self, name: &str) -> Child {
         let i = self.0.iter().position(|(n, _)| n == name).unwrap();
         self.0.remove(i).1
-    }
-}
-
-impl Drop for Processes {
-    fn drop(&mut self) {
-        for (_, child) in &mut self.0 {
-            if child.try_wait().ok().flatten().is_none() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
     }
 }
 
@@ -218,7 +182,7 @@ fn a_learner_killed_with_sigkill_resumes_from_its_last_valid_checkpoint() {
     let (second, addr_again) = learner(&second_args, &dir, "learner-2");
     assert_eq!(addr_again, addr);
     processes.0.push(("learner-2".into(), second));
-    for (name, status) in processes.wait_all(&dir) {
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
         assert!(
             status.success(),
             "{name} exited with {status}\n{}",

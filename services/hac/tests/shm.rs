@@ -3,11 +3,11 @@
 //! side on one host.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, ExitStatus};
+use std::process::Child;
 use std::time::{Duration, Instant};
 mod common;
 
-use common::{all_logs, count, hac, listening_addr, summary};
+use common::{Processes, all_logs, count, hac, listening_addr, summary};
 
 const DEADLINE: Duration = Duration::from_secs(150);
 
@@ -15,51 +15,14 @@ fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-shm-test", name)
 }
 
-/// Kills what still runs when a test fails, so that nothing outlives it.
-struct Processes(Vec<(String, Child)>);
-
 impl Processes {
-    fn wait_all(&mut self, logs: &Path) -> Vec<(String, ExitStatus)> {
-        let started = Instant::now();
-        let mut done = Vec::new();
-        while done.len() < self.0.len() {
-            for (name, child) in &mut self.0 {
-                if done.iter().any(|(n, _)| n == name) {
-                    continue;
-                }
-                if let Some(status) = child.try_wait().unwrap() {
-                    done.push((name.clone(), status));
-                }
-            }
-            if started.elapsed() > DEADLINE {
-                panic!(
-                    "still running after {DEADLINE:?} (finished: {done:?})\n{}",
-                    all_logs(logs)
-                );
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        done
-    }
-
     fn all_succeed(&mut self, logs: &Path) {
-        for (name, status) in self.wait_all(logs) {
+        for (name, status) in self.wait_all(logs, DEADLINE) {
             assert!(
                 status.success(),
                 "{name} exited with {status}\n{}",
                 all_logs(logs)
             );
-        }
-    }
-}
-
-impl Drop for Processes {
-    fn drop(&mut self) {
-        for (_, child) in &mut self.0 {
-            if child.try_wait().ok().flatten().is_none() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
         }
     }
 }

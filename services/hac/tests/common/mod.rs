@@ -5,7 +5,8 @@
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
 
 /// A fresh directory `<tmp>/<prefix>-<pid>-<name>`.
 pub fn scratch(prefix: &str, name: &str) -> PathBuf {
@@ -75,4 +76,44 @@ pub fn count(summary: &serde_json::Value, key: &str) -> u64 {
     summary[key]
         .as_u64()
         .unwrap_or_else(|| panic!("{key} in {summary}"))
+}
+
+/// Kills what still runs when a test fails, so that nothing outlives it.
+pub struct Processes(pub Vec<(String, Child)>);
+
+impl Processes {
+    /// Waits for every process to exit, up to `deadline`.
+    pub fn wait_all(&mut self, logs: &Path, deadline: Duration) -> Vec<(String, ExitStatus)> {
+        let started = Instant::now();
+        let mut done = Vec::new();
+        while done.len() < self.0.len() {
+            for (name, child) in &mut self.0 {
+                if done.iter().any(|(n, _)| n == name) {
+                    continue;
+                }
+                if let Some(status) = child.try_wait().unwrap() {
+                    done.push((name.clone(), status));
+                }
+            }
+            if started.elapsed() > deadline {
+                panic!(
+                    "still running after {deadline:?} (finished: {done:?})\n{}",
+                    all_logs(logs)
+                );
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        done
+    }
+}
+
+impl Drop for Processes {
+    fn drop(&mut self) {
+        for (_, child) in &mut self.0 {
+            if child.try_wait().ok().flatten().is_none() {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
 }
