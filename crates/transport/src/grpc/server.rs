@@ -132,12 +132,14 @@ pub async fn serve(
     .add_service(status.into_service())
     .add_service(service.clone().into_service(&options));
 
+    // Serving before the first request can be read: a client that saw the address never
+    // meets NOT_SERVING from a task not yet scheduled.
+    health.set_serving(true).await;
     let (stopping_tx, mut stopping) = watch::channel(false);
     let reporter = {
         let health = health.clone();
         let mut weights = learner.weights().subscribe();
         async move {
-            health.set_serving(true).await;
             tokio::select! {
                 // An error: the weights cell is gone, so is the run.
                 _ = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)) => {}
