@@ -217,8 +217,11 @@ scale_rows=()
 if [[ -n "${scale_counts// /}" ]]; then
   dir="$out/scaling"
   echo "== scaling $scale_counts, ${phase_seconds} s each: $dir" >&2
-  # Runs until stopped: no early finish, a budget it cannot reach in the phases.
-  start_learner "$dir" 1000000000 --stop-at 1
+  # Runs until stopped: a budget it cannot reach in the phases and no early finish (the config
+  # without its stop_at: even stop_at 1 ends a run that learns the task within the phases).
+  mkdir -p "$out/scaling-config"
+  sed '/^[[:space:]]*stop_at[[:space:]]*=/d' "$config" > "$out/scaling-config/hac.toml"
+  HAC_CONFIG="$out/scaling-config/hac.toml" start_learner "$dir" 1000000000
   start_actor "$dir" evaluator --role evaluator --eval-every $(( eval_every < 10 ? eval_every : 10 ))
   trainers=()
   next_id=0
@@ -231,7 +234,8 @@ if [[ -n "${scale_counts// /}" ]]; then
     done
     while (( ${#trainers[@]} > count )); do
       # SIGTERM: the actor finishes its episode, flushes what is unacknowledged and exits 0.
-      kill -TERM "${trainers[-1]}"
+      kill -TERM "${trainers[-1]}" 2>/dev/null \
+        || echo "local-cluster.sh: trainer pid ${trainers[-1]} had already exited (see $dir/*.log)" >&2
       unset 'trainers[-1]'
     done
     phase_starts+=("$(awk -v now="$(date +%s.%N)" -v t0="$learner_started" 'BEGIN { printf "%.3f", now - t0 }')")

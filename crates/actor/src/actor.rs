@@ -149,6 +149,7 @@ pub fn run_actor(
         env,
         dims,
         max_weights_lag: admission.max_weights_lag,
+        turns: admission.episodes_in_flight > 0,
         summary: ActorSummary {
             incarnation: admission.incarnation,
             ..ActorSummary::default()
@@ -184,6 +185,8 @@ struct State<F> {
     hierarchy: Hierarchy,
     adder: Adder,
     max_weights_lag: u64,
+    /// The learner schedules episodes in turns (`episodes_in_flight` > 0).
+    turns: bool,
     summary: ActorSummary,
     on_evaluation: F,
 }
@@ -247,8 +250,16 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let mut last_eval: Option<u64> = None;
         loop {
             let sent = self.s.summary.episodes;
+            let mut holding_turn = false;
             let snapshot = if self.options.lockstep {
                 self.wait_weights(|w, _| w.episodes >= sent)?
+            } else if self.s.turns && max.is_none_or(|m| sent < m) {
+                // The learner's turn, then weights trained on everything it had then.
+                let Some(trained) = self.wait_turn()? else {
+                    return Ok(());
+                };
+                holding_turn = true;
+                self.wait_weights(|w, _| w.episodes >= trained)?
             } else {
                 let lag = self.s.max_weights_lag;
                 self.wait_weights(|w, newest| w.version.saturating_add(lag) >= newest)?
@@ -272,7 +283,9 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                 self.s.summary.run_finished = true;
                 return Ok(());
             }
-            if max.is_some_and(|m| sent >= m) || self.interrupted() {
+            // An interrupt after a turn was granted stops after the episode: the turn is used,
+            // not left to its lease while the other trainers wait.
+            if max.is_some_and(|m| sent >= m) || (self.interrupted() && !holding_turn) {
                 return Ok(());
             }
             let s = &mut self.s;
@@ -300,6 +313,24 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             s.summary.successes += u64::from(outcome.success);
             policy = Some(p);
             self.wait_acked()?;
+        }
+    }
+
+    /// Waits for the learner to grant this trainer its next episode turn; `None` if
+    /// interrupted first. Returns the episodes the weights to play with must cover.
+    fn wait_turn(&mut self) -> Result<Option<u64>, ActorError> {
+        loop {
+            if self.interrupted() {
+                return Ok(None);
+            }
+            // Short waits, so that an interrupt is noticed.
+            if let Some(trained) = self
+                .link
+                .await_turn(Duration::from_millis(500))
+                .map_err(ActorError::Link)?
+            {
+                return Ok(Some(trained));
+            }
         }
     }
 

@@ -3,7 +3,8 @@
 //! - [`run_actor`]: registers through an [`ActorLink`](hac_transport::ActorLink), takes the
 //!   run's config from the learner, rolls out training episodes (trainers) or greedy test
 //!   episodes (evaluators), applies new weights between episodes, and respects the staleness
-//!   bound (or, with `lockstep`, waits for the updates its own episodes earned).
+//!   bound (or, with `lockstep`, waits for the updates its own episodes earned; or, when the
+//!   learner schedules episode turns, waits for its turn and plays with the weights it names).
 //! - [`Adder`]: packs transitions into per-level batches.
 //! - [`SnapshotPolicy`]: a published weights version as the rollout's policy.
 //! - [`train_embedded`]: learner + one actor in one process over the in-process transport: the

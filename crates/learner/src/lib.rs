@@ -13,6 +13,11 @@
 //!   actor that waits for it gets exactly the paper's schedule), when every level has done
 //!   `publish_every_updates` more updates, and otherwise at the latest `max_publish_delay` after
 //!   fresh weights appeared.
+//! - Episode turns ([`Learner::await_turn`], with `episodes_in_flight` > 0): trainers ask before
+//!   each episode and the learner lets at most that many training episodes be played or wait to
+//!   be trained on at once, over all actors, granting turns in the order asked. Many actors then
+//!   act on weights as fresh as one lockstep actor does, instead of on weights that miss every
+//!   episode the others have in flight.
 //! - [`Learner::report_evaluation`] collects greedy test results into the learning curve; the
 //!   run finishes when a point reaches `stop_at` or the episode budget is trained (and
 //!   evaluated, if an evaluator is registered). The final snapshot says so, and actors stop.
@@ -79,6 +84,10 @@ pub struct LearnerOptions {
     /// Most ingest messages per second taken from one actor (see [`Learner::throttle`]); `None`
     /// for no limit.
     pub max_actor_messages_per_second: Option<f64>,
+    /// Episode turns: at most this many training episodes played or waiting to be trained on
+    /// at once, over all actors (see [`Learner::await_turn`]); 0 for no turns (every trainer
+    /// plays whenever its previous episode is acknowledged).
+    pub episodes_in_flight: u32,
 }
 
 impl LearnerOptions {
@@ -91,6 +100,7 @@ impl LearnerOptions {
             max_weights_lag: 16,
             error_buffer_episodes: 2.0,
             max_actor_messages_per_second: None,
+            episodes_in_flight: 0,
         }
     }
 }
@@ -242,6 +252,48 @@ pub enum Stored {
     Duplicate,
 }
 
+/// The answer to [`Learner::await_turn`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Turn {
+    /// The actor may play its next training episode now.
+    pub granted: bool,
+    /// Training episodes every level had trained on (and published) when the answer was given.
+    pub episodes: u64,
+}
+
+/// Episode turns in status.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TurnStatus {
+    /// `episodes_in_flight` (0: no turns).
+    pub limit: u32,
+    /// Turns granted whose episode has not arrived yet.
+    pub held: u64,
+    /// Trainers waiting for a turn now.
+    pub waiting: u64,
+    pub granted: u64,
+    /// Turns whose lease ran out before their episode arrived.
+    pub expired: u64,
+}
+
+/// How long a granted turn is held for its actor without its episode arriving. An actor that
+/// dies or stalls with a turn delays the others by at most this much.
+pub const TURN_LEASE: Duration = Duration::from_secs(60);
+
+/// The longest a single [`Learner::await_turn`] call waits; actors ask again.
+pub const MAX_TURN_WAIT: Duration = Duration::from_secs(10);
+
+/// Who holds and who waits for episode turns.
+#[derive(Debug, Default)]
+struct TurnState {
+    /// Actor id -> (incarnation, when granted).
+    holders: HashMap<String, (u64, Instant)>,
+    /// Tickets of the calls waiting, served lowest first.
+    waiting: std::collections::BTreeSet<u64>,
+    next_ticket: u64,
+    granted: u64,
+    expired: u64,
+}
+
 /// The backpressure wait ended without room.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 pub enum RoomError {
@@ -349,6 +401,10 @@ struct Shared {
     next_incarnation: AtomicU64,
     slots: Vec<Mutex<LevelSlot>>,
     publisher: Mutex<PublisherState>,
+    /// `publisher.published_episodes`, readable without the publisher's lock.
+    published_episodes: AtomicU64,
+    turns: Mutex<TurnState>,
+    turn_changed: Condvar,
     weights: Published<WeightsSnapshot>,
     curve: Mutex<CurveState>,
     counters: Counters,
@@ -444,6 +500,7 @@ pub struct LearnerStatus {
     /// Messages the per-actor rate limit held back, and the total wait it imposed.
     pub throttled: u64,
     pub throttled_for: Duration,
+    pub turns: TurnStatus,
     pub rates: Rates,
     pub levels: Vec<LevelStatus>,
     /// Sorted by id.
@@ -499,6 +556,9 @@ impl Learner {
         }
         if !(options.error_buffer_episodes.is_finite() && options.error_buffer_episodes >= 1.0) {
             return option("error_buffer_episodes", "must be at least 1");
+        }
+        if options.episodes_in_flight > 1024 {
+            return option("episodes_in_flight", "must be 0 (no turns) to 1024");
         }
         if options
             .max_actor_messages_per_second
@@ -583,6 +643,9 @@ impl Learner {
                 last_publish: Instant::now(),
                 episodes_of: BTreeMap::new(),
             }),
+            published_episodes: AtomicU64::new(resumed.map_or(0, |r| r.published_episodes)),
+            turns: Mutex::default(),
+            turn_changed: Condvar::new(),
             slots,
             weights: Published::default(),
             curve: Mutex::new(CurveState {
@@ -707,6 +770,16 @@ impl Learner {
             );
             ordinal
         };
+        // A turn held by an earlier incarnation will never be used.
+        if shared
+            .turns
+            .lock()
+            .holders
+            .remove(&registration.actor_id)
+            .is_some()
+        {
+            shared.turn_changed.notify_all();
+        }
         tracing::info!(
             actor = %registration.actor_id,
             role = ?registration.role,
@@ -722,6 +795,7 @@ impl Learner {
             max_batch_transitions: shared.options.max_batch_transitions,
             max_weights_lag: shared.options.max_weights_lag,
             shm: None,
+            episodes_in_flight: shared.options.episodes_in_flight,
         })
     }
 
@@ -797,6 +871,28 @@ impl Learner {
             let _running = self.shared.gate.read();
             self.shared.ingest(msg)
         };
+        if let Err(e) = &result {
+            self.count_rejection(e.reason());
+        }
+        result
+    }
+
+    /// Episode turns: waits up to `wait` (at most [`MAX_TURN_WAIT`]) until trainer `actor_id`
+    /// may play its next training episode. A turn is granted, in the order the calls arrived,
+    /// when fewer than `episodes_in_flight` training episodes are held as turns or received but
+    /// not yet trained on and published; it is held until the actor's next episode summary
+    /// arrives, its next registration, or [`TURN_LEASE`]. Asking again while holding a turn
+    /// returns it again. Without turns (`episodes_in_flight` 0) every call is granted at once.
+    ///
+    /// Turns schedule; they do not admit: ingest accepts episodes played without one. Errors:
+    /// unknown actor, stale incarnation, an evaluator asking, the run finished (each counted).
+    pub fn await_turn(
+        &self,
+        actor_id: &str,
+        incarnation: u64,
+        wait: Duration,
+    ) -> Result<Turn, IngestError> {
+        let result = self.shared.await_turn(actor_id, incarnation, wait);
         if let Err(e) = &result {
             self.count_rejection(e.reason());
         }
@@ -963,7 +1059,20 @@ impl Shared {
                     .fetch_add(u64::from(success), Ordering::Relaxed);
                 counters.env_steps.fetch_add(env_steps, Ordering::Relaxed);
                 actor.stored_through = msg.sequence;
+                let incarnation = actor.incarnation;
                 drop(actor);
+                {
+                    // The turn this episode was played in (if any) is used up; the episode
+                    // counts as in flight until it is trained on.
+                    let mut turns = self.turns.lock();
+                    if turns
+                        .holders
+                        .get(msg.actor_id)
+                        .is_some_and(|&(held, _)| held == incarnation)
+                    {
+                        turns.holders.remove(msg.actor_id);
+                    }
+                }
                 for level in 0..self.limiters.len() {
                     self.limiters[level].record_episode();
                     // A level with nothing owed (its table is still below one batch, or its
@@ -980,6 +1089,87 @@ impl Shared {
         }
         actor.stored_through = msg.sequence;
         Ok(Stored::New)
+    }
+
+    fn await_turn(
+        &self,
+        actor_id: &str,
+        incarnation: u64,
+        wait: Duration,
+    ) -> Result<Turn, IngestError> {
+        {
+            let entry = self
+                .actor(actor_id)
+                .ok_or_else(|| IngestError::UnknownActor(actor_id.to_string()))?;
+            let actor = entry.lock();
+            if incarnation != actor.incarnation {
+                return Err(IngestError::StaleIncarnation {
+                    actor: actor_id.to_string(),
+                    got: incarnation,
+                    current: actor.incarnation,
+                });
+            }
+            if actor.role == ActorRole::Evaluator {
+                return Err(IngestError::WrongRole(actor_id.to_string()));
+            }
+        }
+        let answer = |granted| Turn {
+            granted,
+            episodes: self.published_episodes.load(Ordering::Acquire),
+        };
+        let limit = u64::from(self.options.episodes_in_flight);
+        if limit == 0 {
+            return Ok(answer(true));
+        }
+        let deadline = Instant::now() + wait.min(MAX_TURN_WAIT);
+        let mut turns = self.turns.lock();
+        if turns
+            .holders
+            .get(actor_id)
+            .is_some_and(|&(held, _)| held == incarnation)
+        {
+            return Ok(answer(true));
+        }
+        let ticket = turns.next_ticket;
+        turns.next_ticket += 1;
+        turns.waiting.insert(ticket);
+        let leave = |turns: &mut TurnState| {
+            turns.waiting.remove(&ticket);
+            // The next in line may be able to go now.
+            self.turn_changed.notify_all();
+        };
+        loop {
+            if self.finished.load(Ordering::Acquire) {
+                leave(&mut turns);
+                return Err(IngestError::Finished);
+            }
+            let now = Instant::now();
+            let before = turns.holders.len();
+            turns
+                .holders
+                .retain(|_, &mut (_, at)| now.duration_since(at) < TURN_LEASE);
+            turns.expired += (before - turns.holders.len()) as u64;
+            let received = self.counters.episodes.load(Ordering::Acquire);
+            let untrained =
+                received.saturating_sub(self.published_episodes.load(Ordering::Acquire));
+            let in_flight = turns.holders.len() as u64 + untrained;
+            if turns.waiting.first() == Some(&ticket) && in_flight < limit {
+                turns
+                    .holders
+                    .insert(actor_id.to_string(), (incarnation, now));
+                turns.granted += 1;
+                leave(&mut turns);
+                return Ok(answer(true));
+            }
+            if now >= deadline {
+                leave(&mut turns);
+                return Ok(answer(false));
+            }
+            // Publications and episode summaries wake waiters; the slice bounds how late an
+            // expired lease is noticed.
+            let slice = (deadline - now).min(Duration::from_millis(100));
+            self.turn_changed.wait_for(&mut turns, slice);
+        }
     }
 
     fn report_evaluation(&self, evaluation: &Evaluation) -> Result<(), IngestError> {
@@ -1204,6 +1394,10 @@ impl Shared {
             run_finished,
         };
         self.weights.publish(Arc::new(snapshot));
+        self.published_episodes.store(covered, Ordering::Release);
+        // Under the turns' lock, so that a waiter between its check and its wait still wakes.
+        drop(self.turns.lock());
+        self.turn_changed.notify_all();
     }
 
     /// Finishes a run that reached its end (not an interruption): it cannot be resumed.
@@ -1313,6 +1507,16 @@ impl Shared {
                 .collect(),
             throttled: load(&c.throttled),
             throttled_for: Duration::from_nanos(load(&c.throttled_ns)),
+            turns: {
+                let turns = self.turns.lock();
+                TurnStatus {
+                    limit: self.options.episodes_in_flight,
+                    held: turns.holders.len() as u64,
+                    waiting: turns.waiting.len() as u64,
+                    granted: turns.granted,
+                    expired: turns.expired,
+                }
+            },
             rates: Rates {
                 window,
                 transitions_per_s: per_s[0],

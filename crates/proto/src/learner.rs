@@ -46,6 +46,9 @@ pub struct Admission {
     pub max_weights_lag: u64,
     /// Shared memory served to actors on the learner's host, if any.
     pub shm: Option<ShmOffer>,
+    /// Episode turns: at most this many training episodes in flight over all actors, trainers
+    /// asking for a turn before each episode; 0 for none.
+    pub episodes_in_flight: u32,
 }
 
 /// Shared memory (iceoryx2) the learner serves beside gRPC to actors on its own host.
@@ -208,6 +211,7 @@ impl TryFrom<pb::RegisterResponse> for Admission {
             max_batch_transitions: msg.max_batch_transitions as usize,
             max_weights_lag: msg.max_weights_lag,
             shm,
+            episodes_in_flight: msg.episodes_in_flight,
         })
     }
 }
@@ -230,6 +234,7 @@ impl From<Admission> for pb::RegisterResponse {
             max_weights_lag: admission.max_weights_lag,
             shm_namespace,
             shm_host,
+            episodes_in_flight: admission.episodes_in_flight,
         }
     }
 }
@@ -308,6 +313,7 @@ mod tests {
                 namespace: "0123abcd-127.0.0.1-50051".into(),
                 host: "boot/node-1".into(),
             }),
+            episodes_in_flight: 2,
         }
     }
 

@@ -90,7 +90,13 @@ mod tests {
         let methods: Vec<&str> = learner.method.iter().map(|m| m.name()).collect();
         assert_eq!(
             methods,
-            ["Register", "Ingest", "WatchWeights", "ReportEvaluation"]
+            [
+                "Register",
+                "Ingest",
+                "WatchWeights",
+                "ReportEvaluation",
+                "AwaitTurn"
+            ]
         );
     }
 }

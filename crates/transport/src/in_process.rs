@@ -87,6 +87,14 @@ impl ActorLink for InProcess {
         self.learner.weights().latest().map_or(0, |w| w.version)
     }
 
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        let turn = self
+            .learner
+            .await_turn(&self.actor_id, self.incarnation, wait)
+            .map_err(refused)?;
+        Ok(turn.granted.then_some(turn.episodes))
+    }
+
     fn report_evaluation(
         &mut self,
         weights_version: u64,

@@ -73,6 +73,12 @@ pub trait ActorLink: Send {
     /// The newest weights version the learner has announced (in acks), for the staleness bound.
     fn learner_version(&self) -> u64;
 
+    /// Episode turns (a learner with `episodes_in_flight` > 0; see the learner's `await_turn`):
+    /// waits up to about `wait` for this trainer's turn to play its next episode. `Some(n)`:
+    /// granted; play with weights trained on at least `n` episodes. `None`: not yet (ask
+    /// again). A link that had to register again answers `None` at once.
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError>;
+
     /// Reports greedy test results of weights `weights_version`.
     fn report_evaluation(
         &mut self,

@@ -252,9 +252,25 @@ pub fn learner_metrics(learner: &Learner) -> String {
             "Ingest messages held back by the per-actor message rate limit.",
             status.throttled,
         ),
+        (
+            "hac_learner_turns_granted_total",
+            "Episode turns granted to trainers (--episodes-in-flight).",
+            status.turns.granted,
+        ),
+        (
+            "hac_learner_turns_expired_total",
+            "Episode turns whose lease ran out before their episode arrived.",
+            status.turns.expired,
+        ),
     ] {
         m.single(name, Counter, help, value as f64);
     }
+    m.single(
+        "hac_learner_turns_waiting",
+        Gauge,
+        "Trainers waiting for an episode turn now.",
+        status.turns.waiting as f64,
+    );
     m.single(
         "hac_learner_actor_rate_limit_wait_seconds_total",
         Counter,

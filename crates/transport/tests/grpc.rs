@@ -746,3 +746,73 @@ fn a_grpc_link_refuses_a_learner_running_another_config() {
     other.finish("test over");
     runtime.block_on(server.stop());
 }
+
+#[test]
+fn episode_turns_go_over_grpc_one_trainer_at_a_time() {
+    let runtime = server_runtime();
+    let run = run_config();
+    let options = LearnerOptions {
+        episodes_in_flight: 1,
+        ..LearnerOptions::for_run(&run)
+    };
+    let learner = Arc::new(Learner::start(run, options).unwrap());
+    let server = runtime.block_on(Server::start(
+        learner.clone(),
+        localhost(),
+        ServerOptions::default(),
+    ));
+    let mut a = GrpcLink::connect(&server.url(), link_options()).unwrap();
+    let mut b = GrpcLink::connect(&server.url(), link_options()).unwrap();
+    assert_eq!(
+        a.register(&registration_of("a"))
+            .unwrap()
+            .episodes_in_flight,
+        1
+    );
+    b.register(&registration_of("b")).unwrap();
+
+    assert_eq!(a.await_turn(Duration::ZERO).unwrap(), Some(0));
+    assert_eq!(b.await_turn(Duration::from_millis(50)).unwrap(), None);
+    a.send(batch_item(&learner, 0, 4)).unwrap();
+    a.send(episode()).unwrap();
+    a.flush(WAIT).unwrap();
+    // The tables are below one batch: the episode is covered at once, and b's turn comes.
+    assert_eq!(b.await_turn(WAIT).unwrap(), Some(1));
+    assert_eq!(a.await_turn(Duration::from_millis(50)).unwrap(), None);
+
+    // Malformed and refused requests get precise statuses and are counted.
+    runtime.block_on(async {
+        let mut client = server.client().await;
+        let status = client
+            .await_turn(pb::TurnRequest {
+                actor_id: String::new(),
+                incarnation: 1,
+                wait_ms: 0,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert!(
+            status.message().contains("turn_request.actor_id"),
+            "{status:?}"
+        );
+        let status = client
+            .await_turn(pb::TurnRequest {
+                actor_id: "ghost".into(),
+                incarnation: 1,
+                wait_ms: 0,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::NotFound);
+    });
+    assert_eq!(rejected(&learner, RejectReason::UnknownActor), 1);
+
+    learner.finish("test over");
+    assert!(matches!(
+        a.await_turn(Duration::from_millis(50)),
+        Err(LinkError::Finished)
+    ));
+    drop((a, b));
+    runtime.block_on(server.stop());
+}

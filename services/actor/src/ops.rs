@@ -245,6 +245,10 @@ impl ActorLink for Observed<'_> {
         self.inner.learner_version()
     }
 
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        self.inner.await_turn(wait)
+    }
+
     fn report_evaluation(
         &mut self,
         weights_version: u64,

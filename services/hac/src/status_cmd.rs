@@ -298,6 +298,13 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
         s.actor_rate_limit_waits,
         duration(s.actor_rate_limit_wait_seconds)
     );
+    if s.episodes_in_flight > 0 {
+        let _ = writeln!(
+            out,
+            "episode turns: at most {} in flight; {} held, {} waiting, {} granted, {} expired",
+            s.episodes_in_flight, s.turns_held, s.turns_waiting, s.turns_granted, s.turns_expired
+        );
+    }
     out.push('\n');
     if s.actors.is_empty() {
         out.push_str("actors: none registered\n");

@@ -114,6 +114,72 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+#[test]
+fn with_one_episode_in_flight_three_trainers_take_turns() {
+    let dir = scratch("turns");
+    let out = dir.join("out");
+    let out_s = out.to_str().unwrap();
+    let mut processes = Processes(Vec::new());
+    let (learner, addr) = learner(
+        &[
+            "learner",
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "30",
+            "--episodes-in-flight",
+            "1",
+            "--listen",
+            "127.0.0.1:0",
+            "--out",
+            out_s,
+        ],
+        &dir,
+        "learner",
+    );
+    processes.0.push(("learner".into(), learner));
+    let url = format!("http://{addr}");
+    for name in ["trainer-0", "trainer-1", "trainer-2"] {
+        let args = ["actor", "--learner", &url, "--id", name];
+        processes.0.push((name.into(), hac(&args, &dir, name)));
+    }
+    for (name, status) in processes.wait_all(&dir, DEADLINE) {
+        assert!(
+            status.success(),
+            "{name} exited with {status}\n{}",
+            all_logs(&dir)
+        );
+    }
+
+    let summary = summary(&out);
+    let turns = &summary["episode_turns"];
+    assert_eq!(turns["episodes_in_flight"], 1, "{summary}");
+    assert_eq!(turns["expired"], 0, "{summary}");
+    // Every episode was played in a turn (a turn granted as the run ended may go unused).
+    let episodes = count(&summary, "episodes_ingested");
+    let granted = turns["granted"].as_u64().unwrap();
+    assert!(episodes >= 30, "{summary}");
+    assert!(
+        (episodes..=episodes + 3).contains(&granted),
+        "{granted} turns for {episodes} episodes\n{summary}"
+    );
+    // Turns go in the order asked: no trainer is starved.
+    for name in ["trainer-0", "trainer-1", "trainer-2"] {
+        let log = std::fs::read_to_string(dir.join(format!("{name}.log"))).unwrap();
+        let played: u64 = log
+            .split("actor stopped")
+            .nth(1)
+            .and_then(|tail| tail.split(" episodes=").nth(1))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("no episode count in {name}'s log:\n{log}"));
+        assert!(played >= 5, "{name} played {played} of {episodes}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Starts `hac learner` with `args` and returns it with its `host:port`.
 fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     let mut child = hac(args, logs, name);

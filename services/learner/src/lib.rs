@@ -102,6 +102,17 @@ pub struct LearnerArgs {
     /// [default: 16].
     #[arg(long)]
     pub max_weights_lag: Option<u64>,
+    /// Episode turns: at most this many training episodes played or waiting to be trained on at
+    /// once, over all trainers, which ask for a turn before each episode (granted in the order
+    /// asked). 1 reproduces the embedded schedule with any number of actors; 0 lets every
+    /// trainer play whenever its previous episode is acknowledged, acting on weights that miss
+    /// the episodes the others have in flight [default: 0].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=1024))]
+    pub episodes_in_flight: Option<u32>,
+    /// How far ingest may run ahead of training before actors are held back, in episodes'
+    /// worth of updates (the rate limiter's error buffer) [default: 2].
+    #[arg(long, value_parser = at_least_one)]
+    pub error_buffer_episodes: Option<f64>,
     /// Seconds to keep serving after the run finishes (by itself, or on SIGINT/SIGTERM), so that
     /// every actor receives the final weights and stops; health is NOT_SERVING meanwhile.
     #[arg(long, value_name = "SECS", default_value = "2", value_parser = seconds)]
@@ -171,6 +182,14 @@ fn seconds(text: &str) -> Result<Duration, String> {
     Duration::try_from_secs_f64(secs).map_err(|e| format!("`{text}` seconds: {e}"))
 }
 
+fn at_least_one(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(x) if x.is_finite() && x >= 1.0 => Ok(x),
+        Ok(x) => Err(format!("must be a number of at least 1, got {x}")),
+        Err(e) => Err(format!("`{text}` is not a number: {e}")),
+    }
+}
+
 impl LearnerArgs {
     fn resolve(&self) -> Result<RunConfig> {
         config::resolve(
@@ -198,6 +217,12 @@ impl LearnerArgs {
         }
         if let Some(n) = self.max_weights_lag {
             options.max_weights_lag = n;
+        }
+        if let Some(n) = self.episodes_in_flight {
+            options.episodes_in_flight = n;
+        }
+        if let Some(x) = self.error_buffer_episodes {
+            options.error_buffer_episodes = x;
         }
         options.max_actor_messages_per_second = self.ops.max_actor_messages_per_second;
         Ok(options)

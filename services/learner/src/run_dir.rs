@@ -11,7 +11,8 @@
 //!   (equal to `transitions`, unless the run resumed from a checkpoint without its replay: then
 //!   they count from the resume); `duplicates`: resends of stored messages, acknowledged and
 //!   dropped;
-//! - `weights_version`, and `rejected`: refused inputs by reason (only reasons that occurred).
+//! - `weights_version`, and `rejected`: refused inputs by reason (only reasons that occurred);
+//! - `episode_turns`: `episodes_in_flight` (0: no turns), turns `granted` and `expired`.
 
 use anyhow::Result;
 use hac_agent::RoundReport;
@@ -52,6 +53,11 @@ pub fn finish(dir: &RunDir, run: &FinishedRun, wall_time_s: f64) -> Result<Summa
         "duplicates": status.duplicates,
         "weights_version": status.weights_version,
         "rejected": rejected,
+        "episode_turns": {
+            "episodes_in_flight": status.turns.limit,
+            "granted": status.turns.granted,
+            "expired": status.turns.expired,
+        },
     });
     let Value::Object(extra) = extra else {
         unreachable!("a JSON object literal")

@@ -12,6 +12,8 @@ pub const LEARNER: &[&str] = &[
     "max_batch_transitions",
     "publish_every_updates",
     "max_weights_lag",
+    "episodes_in_flight",
+    "error_buffer_episodes",
     "grace_period",
     "drain_timeout",
     "metrics_listen",

@@ -361,6 +361,46 @@ impl ActorLink for GrpcLink {
         "grpc"
     }
 
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        let shared = self.shared.clone();
+        let channel = self.channel.clone();
+        let wait_ms = u32::try_from(wait.as_millis()).unwrap_or(u32::MAX);
+        self.runtime().block_on(async move {
+            let mut client = learner_client(&shared, &channel);
+            let mut retry = Retry::new(&shared, "turn request");
+            loop {
+                let (actor_id, incarnation) = {
+                    let outbox = shared.outbox.lock();
+                    (outbox.actor_id().to_string(), outbox.incarnation)
+                };
+                let mut request = tonic::Request::new(pb::TurnRequest {
+                    actor_id,
+                    incarnation,
+                    wait_ms,
+                });
+                // The learner answers within its own cap on the wait; a dead connection must
+                // not hold the actor longer than that.
+                request.set_timeout(wait + Duration::from_secs(15));
+                let status = match client.await_turn(request).await {
+                    Ok(reply) => {
+                        let reply = reply.into_inner();
+                        return Ok(reply.granted.then_some(reply.episodes));
+                    }
+                    Err(status) => status,
+                };
+                match Failure::of(&status) {
+                    Failure::Retry => retry.wait(&status).await?,
+                    Failure::Reregister => {
+                        reregister(&shared, &channel, incarnation).await?;
+                        return Ok(None);
+                    }
+                    Failure::Finished => return Err(LinkError::Finished),
+                    Failure::Refused => return Err(LinkError::Refused(status.message().into())),
+                }
+            }
+        })
+    }
+
     fn report_evaluation(
         &mut self,
         weights_version: u64,

@@ -456,4 +456,35 @@ impl pb::learner_server::Learner for LearnerGrpc {
             .set_actor_transport(&evaluation.actor_id, TRANSPORT);
         Ok(Response::new(pb::EvaluationAck {}))
     }
+
+    async fn await_turn(
+        &self,
+        request: Request<pb::TurnRequest>,
+    ) -> Result<Response<pb::TurnReply>, Status> {
+        let pb::TurnRequest {
+            actor_id,
+            incarnation,
+            wait_ms,
+        } = request.into_inner();
+        if actor_id.is_empty() {
+            return Err(self.refuse(WireError::missing("turn_request.actor_id").into()));
+        }
+        if incarnation == 0 {
+            return Err(self.refuse(WireError::missing("turn_request.incarnation").into()));
+        }
+        let learner = self.learner.clone();
+        let wait = Duration::from_millis(u64::from(wait_ms));
+        // The learner waits on a condition variable; a blocking thread per waiting actor, for
+        // at most the learner's cap on one wait.
+        let turn =
+            tokio::task::spawn_blocking(move || learner.await_turn(&actor_id, incarnation, wait))
+                .await
+                .map_err(|e| Status::internal(format!("turn wait failed: {e}")))?
+                // The learner counts its own refusals.
+                .map_err(|e| Status::from(Refusal::from(e)))?;
+        Ok(Response::new(pb::TurnReply {
+            granted: turn.granted,
+            episodes: turn.episodes,
+        }))
+    }
 }

@@ -120,6 +120,11 @@ pub fn learner_status(
             .collect(),
         actor_rate_limit_waits: status.throttled,
         actor_rate_limit_wait_seconds: status.throttled_for.as_secs_f64(),
+        episodes_in_flight: status.turns.limit,
+        turns_held: status.turns.held,
+        turns_waiting: status.turns.waiting,
+        turns_granted: status.turns.granted,
+        turns_expired: status.turns.expired,
         actors: status
             .actors
             .iter()

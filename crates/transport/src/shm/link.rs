@@ -707,6 +707,11 @@ impl ActorLink for ShmLink {
         }
     }
 
+    /// Over the gRPC control link, like registration.
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        self.grpc.await_turn(wait)
+    }
+
     fn report_evaluation(
         &mut self,
         weights_version: u64,
