@@ -45,6 +45,19 @@ pub struct TabularConfig {
     pub initial_q: InitialQ,
     /// Upper bound on the entries (f32 values) of one level's table; caps the subgoal radius.
     pub max_table_entries: usize,
+    /// Experience replay: after each training episode's sweep, each level also re-applies the
+    /// update to this many transitions drawn uniformly from its earlier ones (the last
+    /// `replay_capacity`), re-bootstrapping them from the current values as the neural learner
+    /// does with its replay batches. 0: each transition is updated once, when its episode ends.
+    #[serde(default)]
+    pub replay_updates: usize,
+    /// Transitions each level keeps for replay (the oldest are overwritten).
+    #[serde(default = "default_replay_capacity")]
+    pub replay_capacity: usize,
+}
+
+fn default_replay_capacity() -> usize {
+    100_000
 }
 
 impl Default for TabularConfig {
@@ -57,6 +70,8 @@ impl Default for TabularConfig {
             initial_q: InitialQ::Pessimistic,
             // 128 MiB per level: no cap at all on 10 x 10; radius 6 on 25 x 25.
             max_table_entries: 1 << 25,
+            replay_updates: 0,
+            replay_capacity: default_replay_capacity(),
         }
     }
 }
@@ -67,6 +82,12 @@ impl TabularConfig {
             return Err(ConfigError::invalid(
                 "learning_rate",
                 format!("must be in (0, 1], got {}", self.learning_rate),
+            ));
+        }
+        if self.replay_updates > 0 && self.replay_capacity == 0 {
+            return Err(ConfigError::invalid(
+                "replay_capacity",
+                "must be at least 1 when replay_updates is above 0".into(),
             ));
         }
         Ok(())

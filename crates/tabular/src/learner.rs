@@ -59,21 +59,51 @@ impl EpisodeBuffer {
     /// Hands every record to `sink`, newest first, and empties the buffer.
     fn drain_newest_first(&mut self, sink: &mut dyn TransitionSink) {
         for r in self.records.iter().rev() {
-            sink.push(
-                r.level,
-                &Transition {
-                    kind: r.kind,
-                    state: &r.state,
-                    action: &r.action[..r.action_len],
-                    reward: r.reward,
-                    next_state: &r.next_state,
-                    goal: &r.goal,
-                    terminal: r.terminal,
-                },
-            );
+            sink.push(r.level, &r.transition());
         }
         self.records.clear();
     }
+}
+
+impl Record {
+    fn transition(&self) -> Transition<'_> {
+        Transition {
+            kind: self.kind,
+            state: &self.state,
+            action: &self.action[..self.action_len],
+            reward: self.reward,
+            next_state: &self.next_state,
+            goal: &self.goal,
+            terminal: self.terminal,
+        }
+    }
+}
+
+/// One level's replay: the last `capacity` transitions, overwritten oldest first.
+#[derive(Debug)]
+struct ReplayRing {
+    records: Vec<Record>,
+    next: usize,
+    capacity: usize,
+}
+
+impl ReplayRing {
+    fn push(&mut self, record: Record) {
+        if self.records.len() < self.capacity {
+            self.records.push(record);
+        } else {
+            self.records[self.next] = record;
+        }
+        self.next = (self.next + 1) % self.capacity;
+    }
+}
+
+/// Experience replay of [`TabularConfig::replay_updates`] transitions per level per episode.
+#[derive(Debug)]
+struct Replay {
+    updates: usize,
+    levels: Vec<ReplayRing>,
+    rng: Rng,
 }
 
 /// k-level tabular HAC on a four-rooms grid.
@@ -84,6 +114,7 @@ pub struct TabularHac {
     agent: TabularAgent,
     exploration: TabularExploration,
     buffer: EpisodeBuffer,
+    replay: Option<Replay>,
 }
 
 impl TabularHac {
@@ -97,12 +128,25 @@ impl TabularHac {
         let agent = TabularAgent::new(env.grid(), &config, tabular, rng.fork())?;
         let exploration = agent.exploration(&config, rng.fork());
         let hierarchy = Hierarchy::new(hac_core::Env::spec(env), &config);
+        // Only a replaying learner draws a stream for it: without replay, runs stay as before.
+        let replay = (tabular.replay_updates > 0).then(|| Replay {
+            updates: tabular.replay_updates,
+            levels: (0..config.levels)
+                .map(|_| ReplayRing {
+                    records: Vec::new(),
+                    next: 0,
+                    capacity: tabular.replay_capacity.max(1),
+                })
+                .collect(),
+            rng: rng.fork(),
+        });
         Ok(Self {
             config,
             hierarchy,
             agent,
             exploration,
             buffer: EpisodeBuffer::default(),
+            replay,
         })
     }
 
@@ -138,7 +182,23 @@ impl TabularHac {
     /// transition, newest first. [`TabularAgent::level_stats`] then describes these updates.
     pub fn learn(&mut self) {
         self.agent.start_stats_window();
+        if let Some(replay) = &mut self.replay {
+            for r in &self.buffer.records {
+                replay.levels[r.level].push(*r);
+            }
+        }
         self.buffer.drain_newest_first(&mut self.agent);
+        if let Some(replay) = &mut self.replay {
+            for (level, ring) in replay.levels.iter().enumerate() {
+                if ring.records.is_empty() {
+                    continue;
+                }
+                for _ in 0..replay.updates {
+                    let r = &ring.records[replay.rng.below(ring.records.len())];
+                    self.agent.push(level, &r.transition());
+                }
+            }
+        }
     }
 
     /// One greedy test episode; learns nothing.
@@ -246,6 +306,49 @@ mod tests {
         assert_eq!(a.episodes, [0, 10, 20, 25]);
         assert!(a.mean_success.iter().all(|s| (0.0..=1.0).contains(s)));
         assert_eq!(a, success_curve(&spec, &TabularConfig::default()).unwrap());
+    }
+
+    #[test]
+    fn replay_adds_its_updates_per_level_and_stays_deterministic() {
+        let env = FourRooms::new(5).unwrap();
+        let config = hac_core::Env::default_config(&env, 2);
+        let run = |tabular: &TabularConfig| {
+            let mut rng = Rng::seed_from(3);
+            let mut env = FourRooms::new(5).unwrap();
+            let mut hac = TabularHac::new(&env, config.clone(), tabular, &mut rng).unwrap();
+            let mut sweeps = 0;
+            for _ in 0..5 {
+                let before = hac.agent().updates();
+                hac.collect_episode(&mut env, &mut rng);
+                sweeps += hac.buffer.records.len() as u64;
+                hac.learn();
+                assert!(hac.agent().updates() > before);
+            }
+            (
+                hac.agent().updates() + hac.agent().skipped(),
+                sweeps,
+                hac.agent().tables.clone(),
+            )
+        };
+        let (plain, sweeps, _) = run(&TabularConfig::default());
+        assert_eq!(
+            plain, sweeps,
+            "without replay each transition is updated once"
+        );
+        let replaying = TabularConfig {
+            replay_updates: 7,
+            replay_capacity: 50,
+            ..TabularConfig::default()
+        };
+        let (updates, sweeps, tables) = run(&replaying);
+        // Every level has transitions from the first episode on: 7 more per level per episode.
+        assert_eq!(updates, sweeps + 5 * 2 * 7);
+        assert_eq!(tables, run(&replaying).2, "deterministic for a seed");
+        let bad = TabularConfig {
+            replay_capacity: 0,
+            ..replaying
+        };
+        assert!(matches!(bad.validate(), Err(e) if e.key == "replay_capacity"));
     }
 
     #[test]

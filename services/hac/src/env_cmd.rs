@@ -83,10 +83,13 @@ pub fn describe(name: &str, json_out: bool) -> Result<()> {
     if let Some(t) = &tabular {
         println!(
             "  learner: tabular Q-learning (the network keys above are unused); [tabular] defaults: \
-             learning_rate {}, initial_q {}, max_table_entries {}",
+             learning_rate {}, initial_q {}, max_table_entries {}, replay_updates {}, \
+             replay_capacity {}",
             t.learning_rate,
             serde_json::to_string(&t.initial_q)?,
-            t.max_table_entries
+            t.max_table_entries,
+            t.replay_updates,
+            t.replay_capacity
         );
     }
     println!(
