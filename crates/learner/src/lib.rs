@@ -88,6 +88,9 @@ pub struct LearnerOptions {
     /// at once, over all actors (see [`Learner::await_turn`]); 0 for no turns (every trainer
     /// plays whenever its previous episode is acknowledged).
     pub episodes_in_flight: u32,
+    /// How long a granted turn is held for its actor without its episode arriving: an actor
+    /// that dies or stalls with a turn delays the others by at most this much.
+    pub turn_lease: Duration,
 }
 
 impl LearnerOptions {
@@ -101,6 +104,7 @@ impl LearnerOptions {
             error_buffer_episodes: 2.0,
             max_actor_messages_per_second: None,
             episodes_in_flight: 0,
+            turn_lease: TURN_LEASE,
         }
     }
 }
@@ -275,8 +279,7 @@ pub struct TurnStatus {
     pub expired: u64,
 }
 
-/// How long a granted turn is held for its actor without its episode arriving. An actor that
-/// dies or stalls with a turn delays the others by at most this much.
+/// The default [`LearnerOptions::turn_lease`].
 pub const TURN_LEASE: Duration = Duration::from_secs(60);
 
 /// The longest a single [`Learner::await_turn`] call waits; actors ask again.
@@ -559,6 +562,9 @@ impl Learner {
         }
         if options.episodes_in_flight > 1024 {
             return option("episodes_in_flight", "must be 0 (no turns) to 1024");
+        }
+        if options.turn_lease.is_zero() {
+            return option("turn_lease", "must be above 0 seconds");
         }
         if options
             .max_actor_messages_per_second
@@ -881,7 +887,7 @@ impl Learner {
     /// may play its next training episode. A turn is granted, in the order the calls arrived,
     /// when fewer than `episodes_in_flight` training episodes are held as turns or received but
     /// not yet trained on and published; it is held until the actor's next episode summary
-    /// arrives, its next registration, or [`TURN_LEASE`]. Asking again while holding a turn
+    /// arrives, its next registration, or `turn_lease`. Asking again while holding a turn
     /// returns it again. Without turns (`episodes_in_flight` 0) every call is granted at once.
     ///
     /// Turns schedule; they do not admit: ingest accepts episodes played without one. Errors:
@@ -1145,9 +1151,10 @@ impl Shared {
             }
             let now = Instant::now();
             let before = turns.holders.len();
+            let lease = self.options.turn_lease;
             turns
                 .holders
-                .retain(|_, &mut (_, at)| now.duration_since(at) < TURN_LEASE);
+                .retain(|_, &mut (_, at)| now.duration_since(at) < lease);
             turns.expired += (before - turns.holders.len()) as u64;
             let received = self.counters.episodes.load(Ordering::Acquire);
             let untrained =

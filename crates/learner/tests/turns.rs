@@ -192,6 +192,26 @@ fn registering_again_releases_the_turn_of_the_earlier_incarnation() {
 }
 
 #[test]
+fn a_turn_whose_episode_never_comes_expires_after_its_lease() {
+    let config = run();
+    let options = LearnerOptions {
+        episodes_in_flight: 1,
+        turn_lease: Duration::from_millis(200),
+        ..LearnerOptions::for_run(&config)
+    };
+    let learner = Learner::start(config, options).unwrap();
+    let a = register(&learner, "a", ActorRole::Trainer);
+    let b = register(&learner, "b", ActorRole::Trainer);
+    let t0 = Instant::now();
+    assert!(learner.await_turn("a", a, NOW).unwrap().granted);
+    // a never plays (it died): b gets the turn once the lease has run out, not before.
+    assert!(learner.await_turn("b", b, LONG).unwrap().granted);
+    assert!(t0.elapsed() >= Duration::from_millis(200));
+    let turns = learner.status().turns;
+    assert_eq!((turns.granted, turns.expired, turns.held), (2, 1, 1));
+}
+
+#[test]
 fn unknown_actors_and_evaluators_are_refused_by_reason() {
     let learner = start(1);
     let err = learner.await_turn("ghost", 1, NOW).unwrap_err();

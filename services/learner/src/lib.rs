@@ -109,6 +109,10 @@ pub struct LearnerArgs {
     /// the episodes the others have in flight [default: 0].
     #[arg(long, value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub episodes_in_flight: Option<u32>,
+    /// Episode turns: seconds a granted turn is held for a trainer whose episode has not arrived
+    /// (one that died or stalls delays the others at most this long); above the longest episode.
+    #[arg(long, value_name = "SECS", default_value = "60", value_parser = seconds)]
+    pub turn_lease: Duration,
     /// How far ingest may run ahead of training before actors are held back, in episodes'
     /// worth of updates (the rate limiter's error buffer) [default: 2].
     #[arg(long, value_parser = at_least_one)]
@@ -221,6 +225,7 @@ impl LearnerArgs {
         if let Some(n) = self.episodes_in_flight {
             options.episodes_in_flight = n;
         }
+        options.turn_lease = self.turn_lease;
         if let Some(x) = self.error_buffer_episodes {
             options.error_buffer_episodes = x;
         }

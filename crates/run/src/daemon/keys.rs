@@ -13,6 +13,7 @@ pub const LEARNER: &[&str] = &[
     "publish_every_updates",
     "max_weights_lag",
     "episodes_in_flight",
+    "turn_lease",
     "error_buffer_episodes",
     "grace_period",
     "drain_timeout",
