@@ -285,13 +285,30 @@ pub const TURN_LEASE: Duration = Duration::from_secs(60);
 /// The longest a single [`Learner::await_turn`] call waits; actors ask again.
 pub const MAX_TURN_WAIT: Duration = Duration::from_secs(10);
 
+/// How long a place in the line for turns is kept after the call holding it ended without a
+/// turn.
+const PLACE_KEPT: Duration = Duration::from_secs(2);
+
+/// A place in the line for turns.
+#[derive(Debug)]
+struct Waiter {
+    actor: String,
+    incarnation: u64,
+    /// A call is waiting on this place now.
+    asking: bool,
+    /// When the last call on this place ended.
+    left_at: Instant,
+}
+
 /// Who holds and who waits for episode turns.
 #[derive(Debug, Default)]
 struct TurnState {
     /// Actor id -> (incarnation, when granted).
     holders: HashMap<String, (u64, Instant)>,
-    /// Tickets of the calls waiting, served lowest first.
-    waiting: std::collections::BTreeSet<u64>,
+    /// Places in line by ticket, served lowest first among the actors asking now. A place
+    /// outlives the call that took it by [`PLACE_KEPT`], so that an actor asking again after
+    /// its call timed out keeps its place instead of going to the back.
+    waiting: BTreeMap<u64, Waiter>,
     next_ticket: u64,
     granted: u64,
     expired: u64,
@@ -776,15 +793,17 @@ impl Learner {
             );
             ordinal
         };
-        // A turn held by an earlier incarnation will never be used.
-        if shared
-            .turns
-            .lock()
-            .holders
-            .remove(&registration.actor_id)
-            .is_some()
+        // A turn held, or a place in line kept, by an earlier incarnation will never be used.
         {
-            shared.turn_changed.notify_all();
+            let mut turns = shared.turns.lock();
+            let held = turns.holders.remove(&registration.actor_id).is_some();
+            let places = turns.waiting.len();
+            turns
+                .waiting
+                .retain(|_, w| w.asking || w.actor != registration.actor_id);
+            if held || turns.waiting.len() != places {
+                shared.turn_changed.notify_all();
+            }
         }
         tracing::info!(
             actor = %registration.actor_id,
@@ -1136,20 +1155,47 @@ impl Shared {
         {
             return Ok(answer(true));
         }
-        let ticket = turns.next_ticket;
-        turns.next_ticket += 1;
-        turns.waiting.insert(ticket);
-        let leave = |turns: &mut TurnState| {
-            turns.waiting.remove(&ticket);
+        let kept = turns
+            .waiting
+            .iter()
+            .find(|(_, w)| w.actor == actor_id && w.incarnation == incarnation)
+            .map(|(&ticket, _)| ticket);
+        let ticket = kept.unwrap_or_else(|| {
+            let ticket = turns.next_ticket;
+            turns.next_ticket += 1;
+            ticket
+        });
+        turns.waiting.insert(
+            ticket,
+            Waiter {
+                actor: actor_id.to_string(),
+                incarnation,
+                asking: true,
+                left_at: Instant::now(),
+            },
+        );
+        let leave = |turns: &mut TurnState, keep_place: bool| {
+            match turns.waiting.get_mut(&ticket) {
+                Some(w) if keep_place => {
+                    w.asking = false;
+                    w.left_at = Instant::now();
+                }
+                _ => {
+                    turns.waiting.remove(&ticket);
+                }
+            }
             // The next in line may be able to go now.
             self.turn_changed.notify_all();
         };
         loop {
             if self.finished.load(Ordering::Acquire) {
-                leave(&mut turns);
+                leave(&mut turns, false);
                 return Err(IngestError::Finished);
             }
             let now = Instant::now();
+            turns
+                .waiting
+                .retain(|_, w| w.asking || now.duration_since(w.left_at) < PLACE_KEPT);
             let before = turns.holders.len();
             let lease = self.options.turn_lease;
             turns
@@ -1160,16 +1206,21 @@ impl Shared {
             let untrained =
                 received.saturating_sub(self.published_episodes.load(Ordering::Acquire));
             let in_flight = turns.holders.len() as u64 + untrained;
-            if turns.waiting.first() == Some(&ticket) && in_flight < limit {
+            let first = turns
+                .waiting
+                .iter()
+                .find(|(_, w)| w.asking)
+                .map(|(&t, _)| t);
+            if first == Some(ticket) && in_flight < limit {
                 turns
                     .holders
                     .insert(actor_id.to_string(), (incarnation, now));
                 turns.granted += 1;
-                leave(&mut turns);
+                leave(&mut turns, false);
                 return Ok(answer(true));
             }
             if now >= deadline {
-                leave(&mut turns);
+                leave(&mut turns, true);
                 return Ok(answer(false));
             }
             // Publications and episode summaries wake waiters; the slice bounds how late an
@@ -1519,7 +1570,7 @@ impl Shared {
                 TurnStatus {
                     limit: self.options.episodes_in_flight,
                     held: turns.holders.len() as u64,
-                    waiting: turns.waiting.len() as u64,
+                    waiting: turns.waiting.values().filter(|w| w.asking).count() as u64,
                     granted: turns.granted,
                     expired: turns.expired,
                 }

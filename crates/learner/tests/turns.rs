@@ -156,6 +156,37 @@ fn one_turn_at_a_time_in_the_order_asked_each_with_weights_trained_on_every_epis
 }
 
 #[test]
+fn asking_again_after_a_call_timed_out_keeps_the_place_in_line() {
+    let learner = start(1);
+    let a = register(&learner, "a", ActorRole::Trainer);
+    let b = register(&learner, "b", ActorRole::Trainer);
+    let c = register(&learner, "c", ActorRole::Trainer);
+    assert!(learner.await_turn("a", a, NOW).unwrap().granted);
+    // b asks first, gives up after 20 ms; c asks (and waits); b asks again.
+    assert!(
+        !learner
+            .await_turn("b", b, Duration::from_millis(20))
+            .unwrap()
+            .granted
+    );
+    let ask = |id: &'static str, incarnation: u64| {
+        let learner = learner.clone();
+        thread::spawn(move || learner.await_turn(id, incarnation, LONG).unwrap())
+    };
+    let c_waits = ask("c", c);
+    thread::sleep(Duration::from_millis(50));
+    let b_waits = ask("b", b);
+    thread::sleep(Duration::from_millis(50));
+    assert_eq!(learner.status().turns.waiting, 2);
+    play(&learner, "a", a, 0);
+    assert!(b_waits.join().unwrap().granted, "b's place is ahead of c's");
+    thread::sleep(Duration::from_millis(100));
+    assert!(!c_waits.is_finished(), "c waits for b's episode");
+    play(&learner, "b", b, 0);
+    assert!(c_waits.join().unwrap().granted);
+}
+
+#[test]
 fn a_limit_of_two_lets_two_trainers_play_at_once() {
     let learner = start(2);
     let a = register(&learner, "a", ActorRole::Trainer);
