@@ -10,21 +10,10 @@ use hac_core::{Batch, Rng};
 use hac_learner::{CheckpointError, Learner, LearnerCheckpoint, LearnerOptions, StartError};
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
+mod common;
+
 fn run(episodes: u64, shards: usize) -> RunConfig {
-    let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
-    agent.batch_size = 4;
-    agent.updates_per_episode = 3;
-    agent.hidden_layers = vec![8];
-    RunConfig {
-        env: "pendulum".into(),
-        levels: 2,
-        seed: 1,
-        episodes,
-        stop_at: None,
-        replay_shards: shards,
-        agent,
-        tabular: None,
-    }
+    common::small_run(episodes, shards)
 }
 
 fn options(run: &RunConfig) -> LearnerOptions {

@@ -8,21 +8,10 @@ use hac_core::Batch;
 use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, Stored};
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
+mod common;
+
 fn run(episodes: u64) -> RunConfig {
-    let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
-    agent.batch_size = 4;
-    agent.updates_per_episode = 3;
-    agent.hidden_layers = vec![8];
-    RunConfig {
-        env: "pendulum".into(),
-        levels: 2,
-        seed: 1,
-        episodes,
-        stop_at: None,
-        replay_shards: 2,
-        agent,
-        tabular: None,
-    }
+    common::small_run(episodes, 2)
 }
 
 fn start(episodes: u64) -> Learner {

@@ -11,21 +11,10 @@ use hac_core::Batch;
 use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, StartError, Turn};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
+mod common;
+
 fn run() -> RunConfig {
-    let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
-    agent.batch_size = 4;
-    agent.updates_per_episode = 3;
-    agent.hidden_layers = vec![8];
-    RunConfig {
-        env: "pendulum".into(),
-        levels: 2,
-        seed: 1,
-        episodes: 1000,
-        stop_at: None,
-        replay_shards: 1,
-        agent,
-        tabular: None,
-    }
+    common::small_run(1000, 1)
 }
 
 fn start(episodes_in_flight: u32) -> Arc<Learner> {
