@@ -65,6 +65,9 @@ impl ActorOptions {
     }
 }
 
+/// How long a trainer granted a turn waits for the weights it names before asking again.
+const TURN_WEIGHTS_WAIT: Duration = Duration::from_secs(5);
+
 /// Why the actor stopped with an error.
 #[derive(Debug, thiserror::Error)]
 pub enum ActorError {
@@ -254,12 +257,8 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             let snapshot = if self.options.lockstep {
                 self.wait_weights(|w, _| w.episodes >= sent)?
             } else if self.s.turns && max.is_none_or(|m| sent < m) {
-                // The learner's turn, then weights trained on everything it had then.
-                let Some(trained) = self.wait_turn()? else {
-                    return Ok(());
-                };
                 holding_turn = true;
-                self.wait_weights(|w, _| w.episodes >= trained)?
+                self.wait_turn_and_weights()?
             } else {
                 let lag = self.s.max_weights_lag;
                 self.wait_weights(|w, newest| w.version.saturating_add(lag) >= newest)?
@@ -316,21 +315,45 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         }
     }
 
-    /// Waits for the learner to grant this trainer its next episode turn; `None` if
-    /// interrupted first. Returns the episodes the weights to play with must cover.
-    fn wait_turn(&mut self) -> Result<Option<u64>, ActorError> {
+    /// Waits for the learner to grant this trainer its next episode turn, then for weights
+    /// trained on every episode the learner had then (already published when the turn was
+    /// granted, so they arrive within milliseconds). If they do not arrive within
+    /// [`TURN_WEIGHTS_WAIT`] (the learner restarted from an earlier checkpoint in between and
+    /// will never publish them), asks again: the learner answers for the weights it has. `None`
+    /// if interrupted first.
+    fn wait_turn_and_weights(&mut self) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
         loop {
-            if self.interrupted() {
-                return Ok(None);
-            }
             // Short waits, so that an interrupt is noticed.
-            if let Some(trained) = self
-                .link
-                .await_turn(Duration::from_millis(500))
-                .map_err(ActorError::Link)?
-            {
-                return Ok(Some(trained));
+            let trained = loop {
+                if self.interrupted() {
+                    return Ok(None);
+                }
+                if let Some(trained) = self
+                    .link
+                    .await_turn(Duration::from_millis(500))
+                    .map_err(ActorError::Link)?
+                {
+                    break trained;
+                }
+            };
+            let granted = Instant::now();
+            while granted.elapsed() < TURN_WEIGHTS_WAIT {
+                if self.interrupted() {
+                    return Ok(None);
+                }
+                let slice = Duration::from_millis(200);
+                if let Some(w) = self
+                    .link
+                    .weights()
+                    .wait_for(slice, |w| w.run_finished || w.episodes >= trained)
+                {
+                    return Ok(Some(w));
+                }
             }
+            tracing::info!(
+                trained,
+                "no weights covering the turn's episodes arrived: asking for the turn again"
+            );
         }
     }
 

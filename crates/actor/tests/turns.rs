@@ -1,0 +1,133 @@
+//! Trainers under episode turns (a learner with `episodes_in_flight`), over the in-process
+//! transport: several trainers share the turns, and a turn naming weights that never come (a
+//! learner restarted from an earlier checkpoint in between) is asked for again instead of
+//! waited on forever.
+
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
+
+use hac_actor::{ActorOptions, run_actor};
+use hac_agent::RunConfig;
+use hac_learner::{Learner, LearnerOptions, Published};
+use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
+use hac_transport::{ActorLink, InProcess, LinkError};
+
+fn learner(episodes_in_flight: u32) -> Arc<Learner> {
+    let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
+    agent.batch_size = 16;
+    agent.updates_per_episode = 2;
+    agent.hidden_layers = vec![8];
+    let run = RunConfig {
+        env: "pendulum".into(),
+        levels: 2,
+        seed: 4,
+        episodes: 1000,
+        stop_at: None,
+        replay_shards: 1,
+        agent,
+        tabular: None,
+    };
+    let options = LearnerOptions {
+        episodes_in_flight,
+        ..LearnerOptions::for_run(&run)
+    };
+    Arc::new(Learner::start(run, options).unwrap())
+}
+
+fn trainer(id: &str, episodes: u64) -> ActorOptions {
+    ActorOptions {
+        max_episodes: Some(episodes),
+        transports: vec!["in-process".into()],
+        ..ActorOptions::trainer(id)
+    }
+}
+
+#[test]
+fn three_trainers_share_one_turn_and_each_plays_its_episodes() {
+    let learner = learner(1);
+    let handles: Vec<_> = ["a", "b", "c"]
+        .into_iter()
+        .map(|id| {
+            let learner = learner.clone();
+            std::thread::spawn(move || {
+                let mut link = InProcess::new(learner);
+                run_actor(&mut link, &trainer(id, 4), &AtomicBool::new(false), |_| {}).unwrap()
+            })
+        })
+        .collect();
+    for handle in handles {
+        assert_eq!(handle.join().unwrap().episodes, 4);
+    }
+    let status = learner.status();
+    assert_eq!(status.episodes, 12);
+    assert_eq!(status.turns.granted, 12, "one turn per episode");
+    assert_eq!(status.turns.held, 0);
+}
+
+/// The in-process link, except that its first turn names more trained episodes than the
+/// learner will ever have published (as a learner that has since restarted from an earlier
+/// checkpoint would have).
+struct FirstTurnFromAnotherLearner {
+    inner: InProcess,
+    stale_turns: u32,
+}
+
+impl ActorLink for FirstTurnFromAnotherLearner {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.inner.register(registration)
+    }
+
+    fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
+        self.inner.send(item)
+    }
+
+    fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        self.inner.flush(timeout)
+    }
+
+    fn weights(&self) -> &Published<WeightsSnapshot> {
+        self.inner.weights()
+    }
+
+    fn learner_version(&self) -> u64 {
+        self.inner.learner_version()
+    }
+
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        let turn = self.inner.await_turn(wait)?;
+        if turn.is_some() && self.stale_turns == 0 {
+            self.stale_turns += 1;
+            return Ok(Some(1_000_000));
+        }
+        Ok(turn)
+    }
+
+    fn report_evaluation(
+        &mut self,
+        weights_version: u64,
+        episodes: u32,
+        successes: u32,
+    ) -> Result<(), LinkError> {
+        self.inner
+            .report_evaluation(weights_version, episodes, successes)
+    }
+}
+
+#[test]
+fn a_turn_naming_weights_that_never_come_is_asked_for_again() {
+    let learner = learner(1);
+    let mut link = FirstTurnFromAnotherLearner {
+        inner: InProcess::new(learner.clone()),
+        stale_turns: 0,
+    };
+    let started = Instant::now();
+    let summary = run_actor(&mut link, &trainer("a", 2), &AtomicBool::new(false), |_| {}).unwrap();
+    assert_eq!(summary.episodes, 2);
+    assert_eq!(link.stale_turns, 1);
+    assert!(
+        started.elapsed() >= Duration::from_secs(5),
+        "it waited for the named weights first"
+    );
+    assert_eq!(learner.status().episodes, 2);
+}
