@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use hac_agent::{RunConfig, RunConfigError, test_episodes};
 use hac_core::{GaussianExploration, Hierarchy, Mode, Rng};
 use hac_proto::{ActorRole, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, LinkError};
+use hac_transport::{ActorLink, EvaluationOf, LinkError};
 
 use crate::{Adder, SnapshotError, SnapshotPolicy};
 
@@ -372,11 +372,12 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     }
 
     /// One test round of the run's `test_episodes` with `policy`, reported to the learner.
+    /// `false`: the learner restarted since it published `snapshot` and dropped the report.
     fn evaluate(
         &mut self,
         policy: &mut SnapshotPolicy,
         snapshot: &WeightsSnapshot,
-    ) -> Result<(), ActorError> {
+    ) -> Result<bool, ActorError> {
         let s = &mut self.s;
         let episodes = s.run.agent.test_episodes.max(1);
         let mut successes = 0u32;
@@ -389,16 +390,24 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             episodes,
             |outcome, _| successes += u32::from(outcome.success),
         );
-        self.link
-            .report_evaluation(snapshot.version, episodes as u32, successes)
+        let recorded = self
+            .link
+            .report_evaluation(&EvaluationOf {
+                weights_version: snapshot.version,
+                learner_start: snapshot.learner_start,
+                episodes: episodes as u32,
+                successes,
+            })
             .map_err(ActorError::Link)?;
-        s.summary.evaluations += 1;
-        (s.on_evaluation)(&EvaluationEvent {
-            weights_version: snapshot.version,
-            trained_episodes: snapshot.episodes,
-            success_rate: rate,
-        });
-        Ok(())
+        if recorded {
+            s.summary.evaluations += 1;
+            (s.on_evaluation)(&EvaluationEvent {
+                weights_version: snapshot.version,
+                trained_episodes: snapshot.episodes,
+                success_rate: rate,
+            });
+        }
+        Ok(recorded)
     }
 
     fn evaluate_forever(&mut self) -> Result<(), ActorError> {
@@ -408,17 +417,27 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             .unwrap_or(self.s.run.agent.exploration_episodes as u64)
             .max(1);
         let mut next_at = every;
-        let mut last_version = 0;
+        // The last weights evaluated, and the learner process a dropped report came from.
+        let mut last = (0, 0);
+        let mut stale_start = 0;
         loop {
-            let Some(snapshot) = self.wait_weights(|w, _| w.episodes >= next_at)? else {
+            let Some(snapshot) = self.wait_weights(|w, _| {
+                w.episodes >= next_at && (stale_start == 0 || w.learner_start != stale_start)
+            })?
+            else {
                 return Ok(());
             };
-            if snapshot.version != last_version {
+            if (snapshot.learner_start, snapshot.version) != last {
                 let mut policy = SnapshotPolicy::from_snapshot(&snapshot, &self.s.dims)?;
                 self.s.summary.weights_version = policy.version();
-                self.evaluate(&mut policy, &snapshot)?;
-                last_version = snapshot.version;
-                next_at = snapshot.episodes + every;
+                if self.evaluate(&mut policy, &snapshot)? {
+                    last = (snapshot.learner_start, snapshot.version);
+                    next_at = snapshot.episodes + every;
+                    stale_start = 0;
+                } else {
+                    // Evaluate the restarted learner's weights at the same point instead.
+                    stale_start = snapshot.learner_start;
+                }
             }
             if snapshot.run_finished {
                 self.s.summary.run_finished = true;

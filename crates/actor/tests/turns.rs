@@ -11,7 +11,7 @@ use hac_actor::{ActorOptions, run_actor};
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions, Published};
 use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, InProcess, LinkError};
+use hac_transport::{ActorLink, EvaluationOf, InProcess, LinkError};
 
 fn learner(episodes_in_flight: u32) -> Arc<Learner> {
     let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
@@ -103,14 +103,8 @@ impl ActorLink for FirstTurnFromAnotherLearner {
         Ok(turn)
     }
 
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError> {
-        self.inner
-            .report_evaluation(weights_version, episodes, successes)
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
+        self.inner.report_evaluation(report)
     }
 }
 

@@ -158,10 +158,12 @@ pub enum RejectReason {
     Unauthenticated,
     /// Input after the run finished.
     Finished,
+    /// An evaluation of weights another learner process published (before a restart).
+    StaleWeights,
 }
 
 impl RejectReason {
-    pub const ALL: [RejectReason; 11] = [
+    pub const ALL: [RejectReason; 12] = [
         Self::Malformed,
         Self::Oversized,
         Self::InvalidBatch,
@@ -173,6 +175,7 @@ impl RejectReason {
         Self::WrongRole,
         Self::Unauthenticated,
         Self::Finished,
+        Self::StaleWeights,
     ];
 
     /// The snake_case name used in status and metrics.
@@ -189,6 +192,7 @@ impl RejectReason {
             Self::WrongRole => "wrong_role",
             Self::Unauthenticated => "unauthenticated",
             Self::Finished => "finished",
+            Self::StaleWeights => "stale_weights",
         }
     }
 
@@ -229,6 +233,11 @@ pub enum IngestError {
     WrongRole(String),
     #[error("evaluation_report.weights_version {0} was never published")]
     UnknownWeightsVersion(u64),
+    #[error(
+        "evaluation of weights from another learner process (learner_start {got}, this one is \
+         {current}): the learner restarted since; evaluate its weights instead"
+    )]
+    StaleWeights { got: u64, current: u64 },
     #[error("the run is finished")]
     Finished,
 }
@@ -242,6 +251,7 @@ impl IngestError {
             Self::SequenceGap { .. } => RejectReason::SequenceGap,
             Self::WrongRole(_) => RejectReason::WrongRole,
             Self::UnknownWeightsVersion(_) => RejectReason::InvalidBatch,
+            Self::StaleWeights { .. } => RejectReason::StaleWeights,
             Self::Finished => RejectReason::Finished,
         }
     }
@@ -421,6 +431,8 @@ struct Shared {
     next_incarnation: AtomicU64,
     slots: Vec<Mutex<LevelSlot>>,
     publisher: Mutex<PublisherState>,
+    /// This process's random id, in every snapshot (`WeightsSnapshot::learner_start`).
+    learner_start: u64,
     /// `publisher.published_episodes`, readable without the publisher's lock.
     published_episodes: AtomicU64,
     turns: Mutex<TurnState>,
@@ -666,6 +678,7 @@ impl Learner {
                 last_publish: Instant::now(),
                 episodes_of: BTreeMap::new(),
             }),
+            learner_start: learner_start_id(),
             published_episodes: AtomicU64::new(resumed.map_or(0, |r| r.published_episodes)),
             turns: Mutex::default(),
             turn_changed: Condvar::new(),
@@ -1245,6 +1258,12 @@ impl Shared {
             }
             actor.last_seen = Instant::now();
         }
+        if evaluation.learner_start != 0 && evaluation.learner_start != self.learner_start {
+            return Err(IngestError::StaleWeights {
+                got: evaluation.learner_start,
+                current: self.learner_start,
+            });
+        }
         if evaluation.episodes == 0 {
             return Err(WireError::zero("evaluation_report.episodes").into());
         }
@@ -1450,6 +1469,7 @@ impl Shared {
             levels,
             episodes: covered,
             run_finished,
+            learner_start: self.learner_start,
         };
         self.weights.publish(Arc::new(snapshot));
         self.published_episodes.store(covered, Ordering::Release);
@@ -1604,4 +1624,12 @@ fn mix(seed: u64, ordinal: u64, incarnation: u64) -> u64 {
 
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// A random, non-zero id for this learner process: the clock and the process id, mixed.
+fn learner_start_id() -> u64 {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    mix(nanos, u64::from(std::process::id()), 0).max(1)
 }

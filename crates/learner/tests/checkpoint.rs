@@ -132,6 +132,7 @@ fn evaluate(learner: &Learner, feeder: &Feeder, successes: u32) {
             weights_version: version,
             episodes: 4,
             successes,
+            learner_start: 0,
         })
         .unwrap();
 }

@@ -278,6 +278,7 @@ fn weights_cover_each_episode_once_its_updates_are_done_and_the_budget_ends_the_
             weights_version: last.version,
             episodes: 4,
             successes: 1,
+            learner_start: 0,
         })
         .unwrap();
     let e = learner
@@ -287,11 +288,28 @@ fn weights_cover_each_episode_once_its_updates_are_done_and_the_budget_ends_the_
             weights_version: 999,
             episodes: 4,
             successes: 1,
+            learner_start: 0,
         })
         .unwrap_err();
     assert!(matches!(e, IngestError::UnknownWeightsVersion(999)), "{e}");
+    // Weights of another learner process (one that ran before a restart) are refused by
+    // reason; this one's are accepted.
+    let start = last.learner_start;
+    assert_ne!(start, 0);
+    let report = |learner_start| Evaluation {
+        actor_id: "a".into(),
+        incarnation: inc,
+        weights_version: last.version,
+        episodes: 4,
+        successes: 1,
+        learner_start,
+    };
+    let e = learner.report_evaluation(&report(start ^ 1)).unwrap_err();
+    assert!(matches!(e, IngestError::StaleWeights { .. }), "{e}");
+    assert_eq!(rejected(&learner, RejectReason::StaleWeights), 1);
+    learner.report_evaluation(&report(start)).unwrap();
     let finished = learner.shutdown();
-    assert_eq!(finished.curve.len(), 1);
+    assert_eq!(finished.curve.len(), 2);
     assert_eq!(finished.curve[0].episodes, 3);
     assert_eq!(finished.curve[0].success_rate, 0.25);
     assert_eq!(finished.agent.levels().len(), 2);
@@ -335,6 +353,7 @@ fn status_knows_each_actors_transport_version_lag_and_rates() {
             weights_version: newest,
             episodes: 2,
             successes: 1,
+            learner_start: 0,
         })
         .unwrap();
     std::thread::sleep(Duration::from_millis(20));

@@ -71,6 +71,8 @@ pub struct Evaluation {
     pub episodes: u32,
     /// At most `episodes`.
     pub successes: u32,
+    /// The evaluated weights' `learner_start` (0: not checked).
+    pub learner_start: u64,
 }
 
 impl From<ActorRole> for pb::ActorRole {
@@ -264,6 +266,7 @@ impl TryFrom<pb::EvaluationReport> for Evaluation {
             weights_version: msg.weights_version,
             episodes: msg.episodes,
             successes: msg.successes,
+            learner_start: msg.learner_start,
         })
     }
 }
@@ -276,6 +279,7 @@ impl From<Evaluation> for pb::EvaluationReport {
             weights_version: evaluation.weights_version,
             episodes: evaluation.episodes,
             successes: evaluation.successes,
+            learner_start: evaluation.learner_start,
         }
     }
 }
@@ -333,6 +337,7 @@ mod tests {
             weights_version: 12,
             episodes: 10,
             successes: 7,
+            learner_start: 99,
         }
     }
 

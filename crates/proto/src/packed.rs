@@ -31,7 +31,8 @@
 //!      8     8  version
 //!     16     8  episodes
 //!     24     8  run finished: 0 or 1
-//!     32 n x 8  byte length of each level's network
+//!     32     8  learner start (the publishing learner process's random id)
+//!     40 n x 8  byte length of each level's network
 //!      .        the networks (safetensors), level 0 first
 //! ```
 
@@ -48,7 +49,7 @@ const KIND_EPISODE: u8 = 2;
 /// Bytes before the actor id.
 const INGEST_HEADER: usize = 72;
 /// Bytes before the level lengths.
-const WEIGHTS_HEADER: usize = 32;
+const WEIGHTS_HEADER: usize = 40;
 /// Where the float counts start in the ingest header.
 const FLOAT_COUNTS_AT: usize = 48;
 
@@ -250,6 +251,7 @@ pub fn pack_weights(snapshot: &WeightsSnapshot, out: &mut [u8]) -> usize {
     out[8..16].copy_from_slice(&snapshot.version.to_ne_bytes());
     out[16..24].copy_from_slice(&snapshot.episodes.to_ne_bytes());
     out[24..32].copy_from_slice(&u64::from(snapshot.run_finished).to_ne_bytes());
+    out[32..40].copy_from_slice(&snapshot.learner_start.to_ne_bytes());
     let mut at = WEIGHTS_HEADER;
     for level in &snapshot.levels {
         out[at..at + 8].copy_from_slice(&(level.len() as u64).to_ne_bytes());
@@ -318,6 +320,7 @@ pub fn unpack_weights(bytes: &[u8]) -> Result<WeightsSnapshot, WireError> {
         levels,
         episodes: u64_at(bytes, 16),
         run_finished,
+        learner_start: u64_at(bytes, 32),
     })
 }
 
@@ -474,8 +477,9 @@ mod tests {
             ),
             episodes in any::<u64>(),
             run_finished in any::<bool>(),
+            learner_start in any::<u64>(),
         ) {
-            let snapshot = WeightsSnapshot { version, levels, episodes, run_finished };
+            let snapshot = WeightsSnapshot { version, levels, episodes, run_finished, learner_start };
             let mut out = vec![0u8; packed_weights_len(&snapshot) + 5];
             let len = pack_weights(&snapshot, &mut out);
             prop_assert_eq!(unpack_weights(&out[..len]).expect("valid"), snapshot);
@@ -574,11 +578,12 @@ mod tests {
             levels: vec![b"abc".to_vec(), b"de".to_vec()],
             episodes: 10,
             run_finished: false,
+            learner_start: 7,
         };
         let mut out = vec![0u8; packed_weights_len(&snapshot)];
         pack_weights(&snapshot, &mut out);
         let mut empty = out.clone();
-        empty[40..48].copy_from_slice(&0u64.to_ne_bytes());
+        empty[48..56].copy_from_slice(&0u64.to_ne_bytes());
         empty.truncate(out.len() - 2);
         assert_eq!(
             unpack_weights(&empty).unwrap_err().to_string(),

@@ -13,6 +13,8 @@ pub struct WeightsSnapshot {
     pub episodes: u64,
     /// The run is over; actors stop after this snapshot.
     pub run_finished: bool,
+    /// The learner process that published it (random at each start).
+    pub learner_start: u64,
 }
 
 /// Accepts the levels in any order but requires exactly the levels `0..n`, each once, each with
@@ -49,6 +51,7 @@ impl TryFrom<pb::Weights> for WeightsSnapshot {
             levels,
             episodes: msg.episodes,
             run_finished: msg.run_finished,
+            learner_start: msg.learner_start,
         })
     }
 }
@@ -68,6 +71,7 @@ impl From<WeightsSnapshot> for pb::Weights {
                 .collect(),
             episodes: snapshot.episodes,
             run_finished: snapshot.run_finished,
+            learner_start: snapshot.learner_start,
         }
     }
 }
@@ -138,8 +142,9 @@ mod tests {
             levels in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 1..64), 1..5),
             episodes in any::<u64>(),
             run_finished in any::<bool>(),
+            learner_start in any::<u64>(),
         ) {
-            let snapshot = WeightsSnapshot { version, levels, episodes, run_finished };
+            let snapshot = WeightsSnapshot { version, levels, episodes, run_finished, learner_start };
             let bytes = pb::Weights::from(snapshot.clone()).encode_to_vec();
             let decoded = pb::Weights::decode(bytes.as_slice()).expect("prost decodes its own bytes");
             prop_assert_eq!(WeightsSnapshot::try_from(decoded).expect("valid"), snapshot);

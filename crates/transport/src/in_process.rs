@@ -6,7 +6,7 @@ use std::time::Duration;
 use hac_learner::{IngestError, Learner, Published, RegisterError, RoomError};
 use hac_proto::{Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot};
 
-use crate::{ActorLink, LinkError};
+use crate::{ActorLink, EvaluationOf, LinkError};
 
 /// Direct calls into a shared [`Learner`]: registration as is, each item ingested synchronously
 /// after waiting for room (the learner's backpressure), weights read from the learner's own
@@ -95,21 +95,19 @@ impl ActorLink for InProcess {
         Ok(turn.granted.then_some(turn.episodes))
     }
 
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError> {
+    /// The learner in this process cannot restart: a report is on the curve or refused.
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
         self.learner
             .report_evaluation(&Evaluation {
                 actor_id: self.actor_id.clone(),
                 incarnation: self.incarnation,
-                weights_version,
-                episodes,
-                successes,
+                weights_version: report.weights_version,
+                episodes: report.episodes,
+                successes: report.successes,
+                learner_start: report.learner_start,
             })
-            .map_err(refused)
+            .map_err(refused)?;
+        Ok(true)
     }
 
     fn transport(&self) -> &'static str {

@@ -51,6 +51,16 @@ pub enum LinkError {
     TimedOut(usize),
 }
 
+/// One greedy test round, for [`ActorLink::report_evaluation`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EvaluationOf {
+    /// The evaluated weights: their version and the learner process that published them.
+    pub weights_version: u64,
+    pub learner_start: u64,
+    pub episodes: u32,
+    pub successes: u32,
+}
+
 /// The actor's side of a connection to the learner. Implementations keep every sent item until
 /// the learner acknowledges it and resend after reconnecting, so an item handed to
 /// [`send`](Self::send) is stored exactly once unless the actor process dies first.
@@ -79,13 +89,10 @@ pub trait ActorLink: Send {
     /// again). A link that had to register again answers `None` at once.
     fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError>;
 
-    /// Reports greedy test results of weights `weights_version`.
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError>;
+    /// Reports greedy test results of `weights` (their version and learner process). `true`:
+    /// on the curve. `false`: dropped because the weights came from a learner process that has
+    /// since restarted (evaluate the new one's instead).
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError>;
 
     /// Live counters of the link for status and metrics, readable from any thread while the
     /// link is in use (`None`: the link keeps none).

@@ -13,7 +13,7 @@ use hac_proto::{
     ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb,
 };
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, reject_reason, serve};
-use hac_transport::{ActorLink, LinkError};
+use hac_transport::{ActorLink, EvaluationOf, LinkError};
 use prost::Message as _;
 use prost::bytes::BufMut as _;
 use tokio::sync::{mpsc, oneshot};
@@ -651,6 +651,31 @@ fn a_grpc_link_survives_a_learner_restart() {
         5,
         "nothing went to the old learner twice"
     );
+
+    // An evaluation of the first learner's weights is dropped (not put on the second's curve
+    // under a version number it happens to share); one of the second's is recorded.
+    let stale = EvaluationOf {
+        weights_version: first_weights.version,
+        learner_start: first_weights.learner_start,
+        episodes: 2,
+        successes: 1,
+    };
+    assert!(!link.report_evaluation(&stale).unwrap());
+    assert_eq!(rejected(&second, RejectReason::StaleWeights), 1);
+    let second_start = second.weights().latest().unwrap().learner_start;
+    assert_ne!(second_start, first_weights.learner_start);
+    let fresh = link
+        .weights()
+        .wait_for(WAIT, |w| w.learner_start == second_start)
+        .expect("the second learner's weights");
+    let report = EvaluationOf {
+        weights_version: fresh.version,
+        learner_start: fresh.learner_start,
+        episodes: 2,
+        successes: 1,
+    };
+    assert!(link.report_evaluation(&report).unwrap());
+    assert_eq!(second.curve().len(), 1);
 
     // The new learner's weights replace the old ones, whatever their versions.
     second.finish("test over");

@@ -17,7 +17,7 @@ use hac_transport::grpc::{
 };
 use hac_transport::metrics::{actor_metrics, serve_metrics};
 use hac_transport::security::{ClientTls, Token};
-use hac_transport::{ActorLink, LinkError, LinkStats};
+use hac_transport::{ActorLink, EvaluationOf, LinkError, LinkStats};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
@@ -249,19 +249,15 @@ impl ActorLink for Observed<'_> {
         self.inner.await_turn(wait)
     }
 
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError> {
-        self.inner
-            .report_evaluation(weights_version, episodes, successes)?;
-        self.board.evaluations.fetch_add(1, Ordering::Relaxed);
-        self.board
-            .weights_version
-            .fetch_max(weights_version, Ordering::Relaxed);
-        Ok(())
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
+        let recorded = self.inner.report_evaluation(report)?;
+        if recorded {
+            self.board.evaluations.fetch_add(1, Ordering::Relaxed);
+            self.board
+                .weights_version
+                .fetch_max(report.weights_version, Ordering::Relaxed);
+        }
+        Ok(recorded)
     }
 
     fn stats(&self) -> Option<Arc<LinkStats>> {

@@ -43,7 +43,7 @@ use tonic::{Code, Status};
 
 use super::{reject_reason, until_set};
 use crate::security::{BearerToken, ClientTls, EndpointError, Token, endpoint};
-use crate::{ActorLink, LinkError, LinkStats};
+use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
 
 /// The link's channel: every request carries the token, if any.
 type LinkChannel = InterceptedService<Channel, BearerToken>;
@@ -401,14 +401,10 @@ impl ActorLink for GrpcLink {
         })
     }
 
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError> {
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
         let shared = self.shared.clone();
         let channel = self.channel.clone();
+        let report = *report;
         self.runtime().block_on(async move {
             let mut client = learner_client(&shared, &channel);
             let mut retry = Retry::new(&shared, "evaluation report");
@@ -417,31 +413,35 @@ impl ActorLink for GrpcLink {
                     let outbox = shared.outbox.lock();
                     (outbox.actor_id().to_string(), outbox.incarnation)
                 };
-                let report = pb::EvaluationReport {
+                let message = pb::EvaluationReport {
                     actor_id,
                     incarnation,
-                    weights_version,
-                    episodes,
-                    successes,
+                    weights_version: report.weights_version,
+                    episodes: report.episodes,
+                    successes: report.successes,
+                    learner_start: report.learner_start,
                 };
-                let status = match client.report_evaluation(report).await {
+                let status = match client.report_evaluation(message).await {
                     Ok(_) => {
                         shared.outbox.lock().reregistrations = 0;
-                        return Ok(());
+                        return Ok(true);
                     }
                     Err(status) => status,
                 };
+                if reject_reason(&status) == Some(RejectReason::StaleWeights) {
+                    tracing::warn!(
+                        weights_version = report.weights_version,
+                        "the learner restarted since these weights were published: dropping \
+                         their evaluation"
+                    );
+                    return Ok(false);
+                }
                 match Failure::of(&status) {
                     Failure::Retry => retry.wait(&status).await?,
-                    Failure::Reregister => {
-                        reregister(&shared, &channel, incarnation).await?;
-                        // The weights evaluated came from the learner that forgot this actor.
-                        tracing::warn!(
-                            weights_version,
-                            "dropping an evaluation of weights from before the learner restarted"
-                        );
-                        return Ok(());
-                    }
+                    // The learner forgot this actor (it restarted): register again and
+                    // report again. Weights of the learner before the restart are refused as
+                    // stale (above); the restarted learner's own are recorded.
+                    Failure::Reregister => reregister(&shared, &channel, incarnation).await?,
                     Failure::Finished => return Err(LinkError::Finished),
                     Failure::Refused => return Err(LinkError::Refused(status.message().into())),
                 }

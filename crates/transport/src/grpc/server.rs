@@ -175,9 +175,9 @@ impl From<IngestError> for Refusal {
                 Code::InvalidArgument
             }
             IngestError::UnknownActor(_) => Code::NotFound,
-            IngestError::StaleIncarnation { .. } | IngestError::Finished => {
-                Code::FailedPrecondition
-            }
+            IngestError::StaleIncarnation { .. }
+            | IngestError::StaleWeights { .. }
+            | IngestError::Finished => Code::FailedPrecondition,
             IngestError::SequenceGap { .. } => Code::OutOfRange,
             IngestError::WrongRole(_) => Code::PermissionDenied,
         };

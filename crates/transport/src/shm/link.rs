@@ -35,7 +35,7 @@ use super::{
     cleanup_dead_nodes, host_identity,
 };
 use crate::grpc::{ConnectError, GrpcLink, GrpcLinkOptions};
-use crate::{ActorLink, LinkError, LinkStats};
+use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
 
 /// Whether shared memory is required or only preferred.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -712,14 +712,8 @@ impl ActorLink for ShmLink {
         self.grpc.await_turn(wait)
     }
 
-    fn report_evaluation(
-        &mut self,
-        weights_version: u64,
-        episodes: u32,
-        successes: u32,
-    ) -> Result<(), LinkError> {
-        self.grpc
-            .report_evaluation(weights_version, episodes, successes)
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
+        self.grpc.report_evaluation(report)
     }
 
     /// The gRPC control link's counters (incarnation, reconnects; unacked and the learner's
