@@ -904,11 +904,13 @@ impl Learner {
     /// [`ingest`](Self::ingest) for a borrowed message (a batch read in place from shared
     /// memory): the same checks, counts and exactly-once rule; nothing is copied but into replay.
     pub fn ingest_ref(&self, msg: &IngestRef<'_>) -> Result<Stored, IngestError> {
-        let result = {
-            // Checkpoints take the gate exclusively: a consistent cut between messages.
-            let _running = self.shared.gate.read();
-            self.shared.ingest(msg)
-        };
+        // Checkpoints take the gate exclusively: a consistent cut between messages.
+        let _running = self.shared.gate.read();
+        self.counted(self.shared.ingest(msg))
+    }
+
+    /// `result`, with its rejection (if any) counted under its reason.
+    fn counted<T>(&self, result: Result<T, IngestError>) -> Result<T, IngestError> {
         if let Err(e) = &result {
             self.count_rejection(e.reason());
         }
@@ -930,11 +932,7 @@ impl Learner {
         incarnation: u64,
         wait: Duration,
     ) -> Result<Turn, IngestError> {
-        let result = self.shared.await_turn(actor_id, incarnation, wait);
-        if let Err(e) = &result {
-            self.count_rejection(e.reason());
-        }
-        result
+        self.counted(self.shared.await_turn(actor_id, incarnation, wait))
     }
 
     /// Counts a rejection the transport found before the learner saw the message (malformed,
@@ -950,14 +948,8 @@ impl Learner {
     /// Adds an evaluator's (or a self-evaluating trainer's) greedy test results to the learning
     /// curve, at the episode count of the weights version they used; may finish the run.
     pub fn report_evaluation(&self, evaluation: &Evaluation) -> Result<(), IngestError> {
-        let result = {
-            let _running = self.shared.gate.read();
-            self.shared.report_evaluation(evaluation)
-        };
-        if let Err(e) = &result {
-            self.count_rejection(e.reason());
-        }
-        result
+        let _running = self.shared.gate.read();
+        self.counted(self.shared.report_evaluation(evaluation))
     }
 
     /// The learning curve so far, one point per evaluation report.

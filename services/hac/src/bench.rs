@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use hac_agent::RunConfig;
 use hac_core::{Batch, LevelDims};
-use hac_learner::{Learner, LearnerOptions};
+use hac_learner::{Learner, LearnerOptions, LearnerStatus};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 use serde::Serialize;
 
@@ -71,6 +71,65 @@ pub struct IngestReport {
     pub transitions_acked: u64,
     pub duplicates: u64,
     pub floats_per_transition: usize,
+}
+
+/// What one ingest measurement saw, for [`IngestReport::new`].
+pub struct Measured<'a> {
+    /// The bench learner's status after the run: it is fresh, so its totals are the bench's.
+    pub status: &'a LearnerStatus,
+    pub seconds: f64,
+    pub acked_batches: u64,
+    pub latencies_us: &'a mut [u32],
+    /// Floats in one bench batch.
+    pub floats: usize,
+}
+
+impl IngestReport {
+    /// The report of `bench` over `transport` with `window` batches in flight per actor.
+    pub fn new(transport: Transport, bench: &IngestBench, window: usize, m: Measured<'_>) -> Self {
+        let (p50, p99) = percentiles(m.latencies_us);
+        Self {
+            transport,
+            actors: bench.actors,
+            batch_transitions: bench.batch,
+            window,
+            seconds: m.seconds,
+            transitions_per_s: m.status.transitions as f64 / m.seconds,
+            batches_per_s: m.status.batches as f64 / m.seconds,
+            ack_latency_p50_us: p50,
+            ack_latency_p99_us: p99,
+            transitions_stored: m.status.transitions,
+            transitions_acked: m.acked_batches * bench.batch as u64,
+            duplicates: m.status.duplicates,
+            floats_per_transition: m.floats / bench.batch,
+        }
+    }
+}
+
+/// Sender threads: each waits at `start`, sends until `stop` and returns its acknowledged
+/// batches and ack latencies (microseconds).
+pub type Sender = std::thread::JoinHandle<Result<(u64, Vec<u32>)>>;
+
+/// Releases `senders` at `start`, lets them run `seconds`, stops them and joins them: their
+/// acknowledged batches, their latencies, and the seconds measured.
+pub fn run_senders(
+    start: &std::sync::Barrier,
+    stop: &AtomicBool,
+    seconds: f64,
+    senders: Vec<Sender>,
+) -> Result<(u64, Vec<u32>, f64)> {
+    start.wait();
+    let started = Instant::now();
+    std::thread::sleep(Duration::from_secs_f64(seconds));
+    stop.store(true, Ordering::Relaxed);
+    let mut acked_batches = 0;
+    let mut latencies = Vec::new();
+    for s in senders {
+        let (n, l) = s.join().expect("a bench sender panicked")?;
+        acked_batches += n;
+        latencies.extend(l);
+    }
+    Ok((acked_batches, latencies, started.elapsed().as_secs_f64()))
 }
 
 /// The run the bench learner serves: pendulum, 2 levels, a replay large enough that the bench
@@ -284,35 +343,18 @@ fn in_process(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestRepor
             Ok((acked, latencies))
         }));
     }
-    start.wait();
-    let started = Instant::now();
-    std::thread::sleep(Duration::from_secs_f64(bench.seconds));
-    stop.store(true, Ordering::Relaxed);
-    let mut acked_batches = 0;
-    let mut latencies = Vec::new();
-    for s in senders {
-        let (n, l) = s.join().expect("a bench sender panicked")?;
-        acked_batches += n;
-        latencies.extend(l);
-    }
-    let elapsed = started.elapsed().as_secs_f64();
-    let after = learner.status();
-    let (p50, p99) = percentiles(&mut latencies);
-    // The learner is fresh: its totals are the bench's.
-    let stored = after.transitions;
-    Ok(IngestReport {
-        transport: Transport::InProcess,
-        actors: bench.actors,
-        batch_transitions: bench.batch,
-        window: 1,
-        seconds: elapsed,
-        transitions_per_s: stored as f64 / elapsed,
-        batches_per_s: after.batches as f64 / elapsed,
-        ack_latency_p50_us: p50,
-        ack_latency_p99_us: p99,
-        transitions_stored: stored,
-        transitions_acked: acked_batches * bench.batch as u64,
-        duplicates: after.duplicates,
-        floats_per_transition: floats / bench.batch,
-    })
+    let (acked_batches, mut latencies, elapsed) =
+        run_senders(&start, &stop, bench.seconds, senders)?;
+    Ok(IngestReport::new(
+        Transport::InProcess,
+        bench,
+        1,
+        Measured {
+            status: &learner.status(),
+            seconds: elapsed,
+            acked_batches,
+            latencies_us: &mut latencies,
+            floats,
+        },
+    ))
 }

@@ -13,7 +13,7 @@ use hac_transport::grpc::{ServerOptions, serve};
 use tokio::sync::Semaphore;
 use tokio_stream::wrappers::ReceiverStream;
 
-use crate::bench::{IngestBench, IngestReport, level0_batch, percentiles};
+use crate::bench::{IngestBench, IngestReport, Measured, level0_batch, percentiles};
 
 /// A runtime and a learner server on an ephemeral loopback port; dropped = shut down.
 struct Server {
@@ -189,23 +189,19 @@ pub fn ingest(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestRepor
     }
     let elapsed = t0.elapsed().as_secs_f64();
     let status = learner.status();
-    let (p50, p99) = percentiles(&mut latencies);
     drop(server);
-    Ok(IngestReport {
-        transport: crate::bench::Transport::Grpc,
-        actors: bench.actors,
-        batch_transitions: bench.batch,
-        window: bench.window,
-        seconds: elapsed,
-        transitions_per_s: status.transitions as f64 / elapsed,
-        batches_per_s: status.batches as f64 / elapsed,
-        ack_latency_p50_us: p50,
-        ack_latency_p99_us: p99,
-        transitions_stored: status.transitions,
-        transitions_acked: acked_batches * bench.batch as u64,
-        duplicates: status.duplicates,
-        floats_per_transition: floats / bench.batch,
-    })
+    Ok(IngestReport::new(
+        crate::bench::Transport::Grpc,
+        bench,
+        bench.window,
+        Measured {
+            status: &status,
+            seconds: elapsed,
+            acked_batches,
+            latencies_us: &mut latencies,
+            floats,
+        },
+    ))
 }
 
 /// `hac bench weights` result.

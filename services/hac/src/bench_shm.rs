@@ -16,7 +16,9 @@ use hac_transport::shm::{
     Namespace, ShmLink, ShmLinkOptions, ShmMode, ShmServer, ShmServerOptions, WeightsReceiver,
 };
 
-use crate::bench::{IngestBench, IngestReport, Transport, level0_batch, percentiles};
+use crate::bench::{
+    IngestBench, IngestReport, Measured, Transport, level0_batch, percentiles, run_senders,
+};
 use crate::bench_grpc::FanoutReport;
 
 /// The learner served over loopback gRPC (registration) and shared memory; stops when dropped.
@@ -145,36 +147,22 @@ pub fn ingest(bench: &IngestBench, learner: &Arc<Learner>) -> Result<IngestRepor
             Ok((sequence, latencies))
         }));
     }
-    start.wait();
-    let started = Instant::now();
-    std::thread::sleep(Duration::from_secs_f64(bench.seconds));
-    stop.store(true, Ordering::Relaxed);
-    let mut acked_batches = 0;
-    let mut latencies = Vec::new();
-    for s in senders {
-        let (n, l) = s.join().expect("a bench sender panicked")?;
-        acked_batches += n;
-        latencies.extend(l);
-    }
-    let elapsed = started.elapsed().as_secs_f64();
+    let (acked_batches, mut latencies, elapsed) =
+        run_senders(&start, &stop, bench.seconds, senders)?;
     let status = learner.status();
-    let (p50, p99) = percentiles(&mut latencies);
     drop(served);
-    Ok(IngestReport {
-        transport: Transport::Shm,
-        actors: bench.actors,
-        batch_transitions: bench.batch,
-        window: bench.window,
-        seconds: elapsed,
-        transitions_per_s: status.transitions as f64 / elapsed,
-        batches_per_s: status.batches as f64 / elapsed,
-        ack_latency_p50_us: p50,
-        ack_latency_p99_us: p99,
-        transitions_stored: status.transitions,
-        transitions_acked: acked_batches * bench.batch as u64,
-        duplicates: status.duplicates,
-        floats_per_transition: floats / bench.batch,
-    })
+    Ok(IngestReport::new(
+        Transport::Shm,
+        bench,
+        bench.window,
+        Measured {
+            status: &status,
+            seconds: elapsed,
+            acked_batches,
+            latencies_us: &mut latencies,
+            floats,
+        },
+    ))
 }
 
 /// `watchers` same-host actors subscribed to the weights over shared memory; the learner
