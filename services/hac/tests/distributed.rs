@@ -58,14 +58,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
 
-    let exits = processes.wait_all(&dir, DEADLINE);
-    for (name, status) in &exits {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
 
     for file in [
         "config.toml",
@@ -145,13 +138,7 @@ fn with_one_episode_in_flight_three_trainers_take_turns() {
         let args = ["actor", "--learner", &url, "--id", name];
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
 
     let summary = summary(&out);
     let turns = &summary["episode_turns"];
@@ -266,13 +253,7 @@ fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
         ),
     ));
 
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
     let s = summary(&out);
     // Exactly once: every message that reached the learner was stored, a duplicate of a stored
     // one, or refused (the killed incarnation's stragglers, if any), and every transition counted
@@ -373,13 +354,7 @@ fn actors_reconnect_by_themselves_to_a_restarted_learner() {
     assert_eq!(addr_again, addr);
     processes.0.push(("learner-2".into(), second));
 
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
     let s = summary(&out);
     assert!(
         count(&s, "episodes_ingested") >= 60,

@@ -517,13 +517,7 @@ fn a_real_run_reports_coherent_status_metrics_health_and_reflection_then_drains_
     let draining = status_json(&["--learner", &addr], &[])["learner"].clone();
     assert_eq!(draining["state"], "draining");
 
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
     // The watch printed a snapshot per interval until the learner shut it down.
     let lines = watched.join().unwrap();
     assert!(lines.len() >= 2, "{lines:?}");
@@ -751,13 +745,7 @@ fn a_run_behind_a_token_and_tls_keeps_strangers_out() {
         args.extend_from_slice(extra);
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
     let summary: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert!(u(&summary["episodes_ingested"]) >= 30, "{summary}");

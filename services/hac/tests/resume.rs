@@ -182,13 +182,7 @@ fn a_learner_killed_with_sigkill_resumes_from_its_last_valid_checkpoint() {
     let (second, addr_again) = learner(&second_args, &dir, "learner-2");
     assert_eq!(addr_again, addr);
     processes.0.push(("learner-2".into(), second));
-    for (name, status) in processes.wait_all(&dir, DEADLINE) {
-        assert!(
-            status.success(),
-            "{name} exited with {status}\n{}",
-            all_logs(&dir)
-        );
-    }
+    processes.all_succeed(&dir, DEADLINE);
 
     let log = std::fs::read_to_string(dir.join("learner-2.log")).unwrap();
     let skipped = format!(

@@ -15,18 +15,6 @@ fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-shm-test", name)
 }
 
-impl Processes {
-    fn all_succeed(&mut self, logs: &Path) {
-        for (name, status) in self.wait_all(logs, DEADLINE) {
-            assert!(
-                status.success(),
-                "{name} exited with {status}\n{}",
-                all_logs(logs)
-            );
-        }
-    }
-}
-
 fn log(logs: &Path, name: &str) -> String {
     std::fs::read_to_string(logs.join(format!("{name}.log"))).unwrap()
 }
@@ -120,7 +108,7 @@ fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car
     processes
         .0
         .push(actor(&url, "grpc-0", &["--transport", "grpc"], &dir));
-    processes.all_succeed(&dir);
+    processes.all_succeed(&dir, DEADLINE);
 
     let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().collect();
@@ -230,7 +218,7 @@ fn a_shm_trainer_killed_mid_run_rejoins_and_every_stored_message_is_stored_once(
     std::fs::rename(dir.join("trainer-1.log"), dir.join("trainer-1-killed.log")).unwrap();
     let (_, again) = actor(&url, "trainer-1", &["--transport", "shm"], &dir);
     processes.0.push(("trainer-1-again".into(), again));
-    processes.all_succeed(&dir);
+    processes.all_succeed(&dir, DEADLINE);
 
     let s = summary(&out);
     assert_exactly_once(&s);
@@ -284,7 +272,7 @@ fn two_runs_side_by_side_on_one_host_do_not_see_each_others_data() {
             .push(actor(&url, actor_name, &["--transport", "shm"], &dir));
         outs.push((out, learner_name, actor_name));
     }
-    processes.all_succeed(&dir);
+    processes.all_succeed(&dir, DEADLINE);
 
     for (out, learner_name, actor_name) in &outs {
         let s = summary(out);

@@ -105,6 +105,17 @@ impl Processes {
         }
         done
     }
+
+    /// [`wait_all`](Self::wait_all), asserting that every process exited 0 (with the logs).
+    pub fn all_succeed(&mut self, logs: &Path, deadline: Duration) {
+        for (name, status) in self.wait_all(logs, deadline) {
+            assert!(
+                status.success(),
+                "{name} exited with {status}\n{}",
+                all_logs(logs)
+            );
+        }
+    }
 }
 
 impl Drop for Processes {
