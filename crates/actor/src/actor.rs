@@ -388,7 +388,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             &mut s.exploration,
             &mut s.test_rng,
             episodes,
-            |outcome, _| successes += u32::from(outcome.success),
+            |outcome, _, _| successes += u32::from(outcome.success),
         );
         let recorded = self
             .link

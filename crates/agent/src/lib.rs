@@ -197,15 +197,15 @@ impl RoundReport {
     }
 }
 
-/// Greedy test episodes of a saved agent. Calls `on_episode` with each outcome and the final
-/// state; returns the success rate.
+/// Greedy test episodes of a saved agent. Calls `on_episode` with each outcome, the final state
+/// and the episode's end goal; returns the success rate.
 pub fn evaluate(
     env: &mut dyn Env,
     agent: &mut Agent,
     config: &AgentConfig,
     episodes: usize,
     seed: u64,
-    on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
 ) -> f32 {
     let spec = env.spec().clone();
     let mut rng = Rng::seed_from(seed);
@@ -232,14 +232,14 @@ pub fn test_episodes(
     exploration: &mut GaussianExploration,
     rng: &mut Rng,
     episodes: usize,
-    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
 ) -> f32 {
     let mut successes = 0usize;
     for _ in 0..episodes {
         let outcome =
             hierarchy.run_episode(env, agent, exploration, Mode::Test, rng, &mut NullSink);
         successes += usize::from(outcome.success);
-        on_episode(&outcome, env.state());
+        on_episode(&outcome, env.state(), hierarchy.end_goal());
     }
     successes as f32 / episodes.max(1) as f32
 }

@@ -73,13 +73,42 @@ impl Bounds {
 
 /// Whether `achieved` is within `threshold` of `goal` on every dimension (HAC's goal test).
 pub fn within(achieved: &[f32], goal: &[f32], threshold: &[f32]) -> bool {
+    within_goal(achieved, goal, threshold, &[])
+}
+
+/// Like [`within`], but the dimensions flagged in `angles` (radians; empty: none) are compared
+/// along the circle: the difference is wrapped to `[-pi, pi]` first, so a goal angle names a
+/// direction whatever turn it is written in (`3.0` is within 0.1 of `-3.2`, and `4.0` reaches
+/// `4.0 - 2 pi`).
+pub fn within_goal(achieved: &[f32], goal: &[f32], threshold: &[f32], angles: &[bool]) -> bool {
     debug_assert_eq!(achieved.len(), goal.len());
     debug_assert_eq!(goal.len(), threshold.len());
+    debug_assert!(angles.is_empty() || angles.len() == goal.len());
     achieved
         .iter()
         .zip(goal)
         .zip(threshold)
-        .all(|((a, g), t)| (a - g).abs() <= *t)
+        .enumerate()
+        .all(|(d, ((a, g), t))| {
+            let diff = a - g;
+            let diff = if angles.get(d).copied().unwrap_or(false) {
+                angle_difference(diff)
+            } else {
+                diff
+            };
+            diff.abs() <= *t
+        })
+}
+
+/// `diff` wrapped to `[-pi, pi]`.
+fn angle_difference(diff: f32) -> f32 {
+    use std::f32::consts::{PI, TAU};
+    if (-PI..=PI).contains(&diff) {
+        diff
+    } else {
+        let r = diff.rem_euclid(TAU);
+        if r > PI { r - TAU } else { r }
+    }
 }
 
 #[cfg(test)]
@@ -102,5 +131,23 @@ mod tests {
     fn within_every_dimension() {
         assert!(within(&[0.0, 1.0], &[0.05, 1.15], &[0.1, 0.2]));
         assert!(!within(&[0.0, 1.0], &[0.1, 1.3], &[0.1, 0.2]));
+    }
+
+    #[test]
+    fn angle_dimensions_compare_along_the_circle() {
+        use std::f32::consts::{PI, TAU};
+        let (t, angle) = (&[0.1, 0.1][..], &[true, false][..]);
+        // Across the seam at +-pi: 0.08 apart as directions, 6.2 apart as numbers.
+        assert!(within_goal(&[3.1, 0.0], &[-3.12, 0.0], t, angle));
+        assert!(!within(&[3.1, 0.0], &[-3.12, 0.0], t));
+        // A goal written one turn away names the same direction.
+        assert!(within_goal(&[-2.0, 0.0], &[-2.0 + TAU, 0.0], t, angle));
+        assert!(within_goal(&[2.0, 0.0], &[2.05 - TAU, 0.0], t, angle));
+        assert!(!within_goal(&[2.0, 0.0], &[2.2 - TAU, 0.0], t, angle));
+        // Only flagged dimensions wrap; the threshold still applies to the wrapped difference.
+        assert!(!within_goal(&[0.0, 3.1], &[0.0, -3.12], t, angle));
+        assert!(!within_goal(&[0.0, 0.0], &[PI, 0.0], t, angle));
+        // No flags: the same as `within`.
+        assert!(within_goal(&[0.0, 1.0], &[0.05, 1.05], t, &[]));
     }
 }

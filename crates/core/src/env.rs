@@ -32,6 +32,14 @@ pub struct EnvSpec {
     pub subgoal_bounds: Bounds,
     /// Per-dimension threshold for reaching a subgoal.
     pub subgoal_thresholds: Vec<f32>,
+    /// End-goal dimensions that are angles in radians, compared along the circle (see
+    /// [`crate::within_goal`]); empty when none is.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub end_goal_angles: Vec<bool>,
+    /// Subgoal dimensions that are angles in radians, compared along the circle; empty when none
+    /// is.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub subgoal_angles: Vec<bool>,
     /// Episode budget in primitive actions.
     pub max_actions: usize,
     /// Physics integration steps per primitive action.

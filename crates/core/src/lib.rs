@@ -15,7 +15,7 @@ pub mod rng;
 pub mod rollout;
 pub mod transition;
 
-pub use bounds::{Bounds, within};
+pub use bounds::{Bounds, within, within_goal};
 pub use config::{AgentConfig, ConfigError, Noise};
 pub use env::{Env, EnvSpec, LevelDims, Mode, StateError};
 pub use rng::Rng;

@@ -25,7 +25,7 @@
 
 use crate::{
     AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, TransitionSink,
-    within,
+    within_goal,
 };
 
 /// Upper bound on `AgentConfig::num_replay_goals`.
@@ -174,6 +174,17 @@ impl Hierarchy {
             config.num_replay_goals <= MAX_REPLAY_GOALS,
             "too many replay goals"
         );
+        for (angles, dim) in [
+            (&spec.end_goal_angles, spec.end_goal_dim),
+            (&spec.subgoal_angles, spec.subgoal_dim()),
+        ] {
+            assert!(
+                angles.is_empty() || angles.len() == dim,
+                "{}: angle flags for {} of {dim} goal dimensions",
+                spec.name,
+                angles.len()
+            );
+        }
         let levels = (0..k)
             .map(|level| {
                 let dims = spec.level_dims(level, k);
@@ -203,6 +214,11 @@ impl Hierarchy {
 
     pub fn num_levels(&self) -> usize {
         self.levels.len()
+    }
+
+    /// The end goal of the current (or last) episode.
+    pub fn end_goal(&self) -> &[f32] {
+        &self.levels[self.levels.len() - 1].goal
     }
 
     /// Resets `env`, draws an end goal for `mode`, and runs one episode. In `Mode::Train` every
@@ -328,16 +344,24 @@ impl Hierarchy {
         let top = self.levels.len() - 1;
         let mut highest = None;
         for (l, level) in self.levels.iter_mut().enumerate() {
-            let (projected, threshold) = if l == top {
+            let (projected, threshold, angles) = if l == top {
                 let p = &mut self.projected[..self.spec.end_goal_dim];
                 env.project_end_goal(&self.state, p);
-                (&*p, &self.spec.end_goal_thresholds)
+                (
+                    &*p,
+                    &self.spec.end_goal_thresholds,
+                    &self.spec.end_goal_angles,
+                )
             } else {
                 let p = &mut self.projected[..self.spec.subgoal_dim()];
                 env.project_subgoal(&self.state, p);
-                (&*p, &self.spec.subgoal_thresholds)
+                (
+                    &*p,
+                    &self.spec.subgoal_thresholds,
+                    &self.spec.subgoal_angles,
+                )
             };
-            level.reached = within(projected, &level.goal, threshold);
+            level.reached = within_goal(projected, &level.goal, threshold, angles);
             if level.reached {
                 highest = Some(l);
             }
@@ -441,17 +465,18 @@ impl Hierarchy {
         }
         picks[goals - 1] = n - 1;
         picks.sort_unstable();
-        let threshold = if i == top {
-            &self.spec.end_goal_thresholds
+        let (threshold, angles) = if i == top {
+            (&self.spec.end_goal_thresholds, &self.spec.end_goal_angles)
         } else {
-            &self.spec.subgoal_thresholds
+            (&self.spec.subgoal_thresholds, &self.spec.subgoal_angles)
         };
         let her = &lv.her;
         let (sd, ad, gd) = (self.spec.state_dim, lv.action.len(), lv.goal.len());
         for &pick in picks.iter() {
             let goal = &her.achieved[pick * gd..(pick + 1) * gd];
             for j in 0..n {
-                let reached = within(&her.achieved[j * gd..(j + 1) * gd], goal, threshold);
+                let achieved = &her.achieved[j * gd..(j + 1) * gd];
+                let reached = within_goal(achieved, goal, threshold, angles);
                 ep.sink.push(
                     i,
                     &Transition {

@@ -5,7 +5,7 @@ mod common;
 
 use common::{PointEnv, RandomPolicy, agent_config};
 use hac_core::{
-    Env, GaussianExploration, Hierarchy, Mode, OwnedTransition, Rng, TransitionKind, within,
+    Env, GaussianExploration, Hierarchy, Mode, OwnedTransition, Rng, TransitionKind, within_goal,
 };
 use proptest::prelude::*;
 
@@ -102,10 +102,10 @@ fn check(r: &Run) -> Result<(), TestCaseError> {
     for level in 0..r.levels {
         let stream: Vec<&OwnedTransition> =
             r.transitions.iter().filter(|t| t.level == level).collect();
-        let threshold = if level == top {
-            &spec.end_goal_thresholds
+        let (threshold, angles) = if level == top {
+            (&spec.end_goal_thresholds, &spec.end_goal_angles)
         } else {
-            &spec.subgoal_thresholds
+            (&spec.subgoal_thresholds, &spec.subgoal_angles)
         };
         for t in &stream {
             match t.kind {
@@ -128,7 +128,10 @@ fn check(r: &Run) -> Result<(), TestCaseError> {
                 } else {
                     r.env.project_subgoal(&t.next_state, &mut achieved);
                 }
-                prop_assert_eq!(t.reward == 0.0, within(&achieved, &t.goal, threshold));
+                prop_assert_eq!(
+                    t.reward == 0.0,
+                    within_goal(&achieved, &t.goal, threshold, angles)
+                );
             }
             let bounds = spec.level_action_bounds(level);
             prop_assert!(

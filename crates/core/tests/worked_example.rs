@@ -269,3 +269,87 @@ fn environment_termination_ends_the_episode_and_stops_bootstrapping() {
         t(1, HindsightAction, 0.0, 3.0, -1.0, 3.0, FLAG, true)
     );
 }
+
+#[test]
+fn angle_goals_are_reached_one_turn_away() {
+    use TransitionKind::*;
+    use std::f32::consts::TAU;
+    // The point's coordinate read as an angle: level 1 proposes 3 + 2 pi (tested), level 0 moves
+    // +1 greedily and reaches it along the circle at 3.0; the end goal 7 - 2 pi is reached at 7.
+    let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 100);
+    env.spec.end_goal_angles = vec![true];
+    env.spec.subgoal_angles = vec![true];
+    let config = agent_config(2, 5);
+    let subgoal = 3.0 + TAU;
+    let mut policy = ScriptedPolicy {
+        outputs: vec![
+            VecDeque::from([vec![1.0]]),
+            VecDeque::from([vec![subgoal], vec![subgoal + 4.0]]),
+        ],
+    };
+    let mut exploration = ScriptedExploration {
+        perturbation: vec![vec![0.0], vec![0.0]],
+        tests: vec![VecDeque::new(), VecDeque::from([true, false])],
+        replay_indices: VecDeque::from([0; 8]),
+    };
+    let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
+    let mut got: Vec<OwnedTransition> = Vec::new();
+    let outcome = hierarchy.run_episode_from(
+        &mut env,
+        &[7.0 - TAU],
+        &mut policy,
+        &mut exploration,
+        Mode::Train,
+        &mut got,
+    );
+    assert!(outcome.success);
+    assert_eq!(outcome.steps, 7);
+    let level0: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 0 && t.kind == HindsightAction)
+        .collect();
+    // The third move reaches the subgoal: reward 0, terminal, and level 0 returns.
+    assert_eq!(
+        *level0[2],
+        t(0, HindsightAction, 2.0, 1.0, 0.0, 3.0, subgoal, true)
+    );
+    // Level 1: the tested subgoal was reached, so it is its own hindsight action and there is no
+    // penalty; the second attempt reaches the end goal.
+    let level1: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 1 && t.kind != HindsightGoal)
+        .collect();
+    assert_eq!(
+        level1,
+        vec![
+            &t(
+                1,
+                HindsightAction,
+                0.0,
+                subgoal,
+                -1.0,
+                3.0,
+                7.0 - TAU,
+                false
+            ),
+            &t(
+                1,
+                HindsightAction,
+                3.0,
+                subgoal + 4.0,
+                0.0,
+                7.0,
+                7.0 - TAU,
+                true
+            ),
+        ]
+    );
+    // HER at level 0 of the first call relabels with the achieved 1.0 (pick 0) and 3.0 (last);
+    // rewards compare along the circle as well, so nothing else counts as reached.
+    let her0: Vec<_> = got
+        .iter()
+        .filter(|t| t.level == 0 && t.kind == HindsightGoal && t.goal == [3.0])
+        .map(|t| t.reward)
+        .collect();
+    assert_eq!(her0, [-1.0, -1.0, 0.0]);
+}

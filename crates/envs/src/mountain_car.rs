@@ -109,6 +109,8 @@ fn spec() -> EnvSpec {
             vec![MAX_X as f32, MAX_SPEED as f32],
         ),
         subgoal_thresholds: thresholds,
+        end_goal_angles: Vec::new(),
+        subgoal_angles: Vec::new(),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: 1,
     }

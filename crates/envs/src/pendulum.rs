@@ -142,6 +142,8 @@ fn spec() -> EnvSpec {
         end_goal_thresholds: thresholds.clone(),
         subgoal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
         subgoal_thresholds: thresholds,
+        end_goal_angles: Vec::new(),
+        subgoal_angles: Vec::new(),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
     }

@@ -27,14 +27,14 @@
 //!
 //! Angles: ENVS.md wraps every angle to (-pi, pi], and so does this task, in the state, the
 //! projections and the goals. The reference leaves MuJoCo's joint positions unwrapped and folds
-//! them into (-2pi, 2pi) only when projecting, hence its subgoal bounds of +-2pi; those bounds
-//! are kept because ENVS.md states them (they also keep the reference's subgoal noise scale, a
-//! fraction of the half range). Every projection lies inside them, but subgoal angles beyond
-//! +-pi are never achieved: hindsight actions and achieved goals all have wrapped angles.
+//! them into (-2pi, 2pi) only when projecting, hence its subgoal bounds of +-2pi, which ENVS.md
+//! keeps (they also set the subgoal noise scale, a fraction of the half range). Goal checks
+//! compare the joint angles along the circle (`EnvSpec::end_goal_angles` / `subgoal_angles`):
+//! a subgoal angle names a direction, so every point of the +-2pi box is a reachable subgoal
+//! (`4.0` is reached at `4.0 - 2pi`), and a goal near +-pi is reached from either side of the
+//! seam. Compared as plain numbers, as before, the seven eighths of the box with an angle beyond
+//! +-pi could never be reached, and a subgoal there could only be penalised.
 //! Wrapping is exact for the physics (M, C and g depend on q only through sines and cosines).
-//! Goal checks compare angles linearly, so a goal within 10 degrees of +-pi can be missed by a
-//! state just across the seam; the reference's unwrapped angles have the same blind spot at
-//! whole extra turns instead.
 
 pub mod arm;
 
@@ -209,6 +209,9 @@ fn spec() -> EnvSpec {
         end_goal_thresholds: vec![angle_threshold; JOINTS],
         subgoal_bounds: Bounds::symmetric(&subgoal_radius),
         subgoal_thresholds,
+        // Joint angles are compared along the circle, velocities as numbers.
+        end_goal_angles: vec![true; JOINTS],
+        subgoal_angles: [[true; JOINTS], [false; JOINTS]].concat(),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
     }
@@ -316,7 +319,7 @@ impl Env for Ur5Reacher {
 
 #[cfg(test)]
 mod tests {
-    use std::f64::consts::{FRAC_PI_4, FRAC_PI_8, PI};
+    use std::f64::consts::{FRAC_PI_4, FRAC_PI_8, PI, TAU};
 
     use super::*;
 
@@ -635,6 +638,41 @@ mod tests {
         env.project_end_goal(&[-PI_F32, 3.5, 0.0, 0.0, 0.0, 0.0], &mut end);
         assert_eq!(end[0], -PI_F32);
         assert!((end[1] - (3.5 - TAU_F32)).abs() < 1e-6, "{end:?}");
+    }
+
+    #[test]
+    fn subgoal_angles_anywhere_in_the_bounds_are_reached_along_the_circle() {
+        let mut env = Ur5Reacher::new();
+        let spec = env.spec().clone();
+        assert_eq!(spec.end_goal_angles, [true; 3]);
+        assert_eq!(spec.subgoal_angles, [true, true, true, false, false, false]);
+        let reached = |env: &Ur5Reacher, goal: &[f32]| {
+            let mut sub = [0.0f32; 6];
+            env.project_subgoal(env.state(), &mut sub);
+            hac_core::within_goal(&sub, goal, &spec.subgoal_thresholds, &spec.subgoal_angles)
+        };
+        // The arm at (-2.28, 2.5, 0.2) rad, the pan turning at 1 rad/s.
+        env.set_physical_state(&[4.0 - TAU, 2.5, 0.2, 1.0, 0.0, 0.0])
+            .unwrap();
+        // A subgoal of 4.0 rad (inside the +-2pi bounds) names the pan's direction; so does a lift
+        // of 2.5 - 2pi. Within 10 degrees and 2 rad/s on every dimension.
+        assert!(reached(&env, &[4.0, 2.5, 0.2, 1.0, 0.0, 0.0]));
+        assert!(reached(&env, &[4.1, 2.5 - TAU_F32, 0.3, 2.5, -1.5, 1.9]));
+        // Still 10 degrees: 0.2 rad off the pan is missed, and speeds do not wrap.
+        assert!(!reached(&env, &[4.2, 2.5, 0.2, 1.0, 0.0, 0.0]));
+        assert!(!reached(&env, &[4.0, 2.5, 0.2, 1.0 + TAU_F32, 0.0, 0.0]));
+        // Across the seam: an end goal at 3.1 rad is reached by a pan at -3.12 rad.
+        env.set_physical_state(&[-3.12, 0.0, 0.0, 0.0, 0.0, 0.0])
+            .unwrap();
+        let mut end = [0.0f32; 3];
+        env.project_end_goal(env.state(), &mut end);
+        let goal = [3.1, 0.0, 0.0];
+        assert!(hac_core::within_goal(
+            &end,
+            &goal,
+            &spec.end_goal_thresholds,
+            &spec.end_goal_angles
+        ));
     }
 
     #[test]

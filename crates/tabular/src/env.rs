@@ -57,6 +57,8 @@ impl FourRooms {
             end_goal_thresholds: vec![0.5, 0.5],
             subgoal_bounds: Bounds::new(vec![0.0, 0.0], vec![last, last]),
             subgoal_thresholds: vec![0.5, 0.5],
+            end_goal_angles: Vec::new(),
+            subgoal_angles: Vec::new(),
             max_actions: 3 * grid.diameter(),
             physics_steps_per_action: 1,
         };

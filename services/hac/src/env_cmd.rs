@@ -58,6 +58,20 @@ pub fn describe(name: &str, json_out: bool) -> Result<()> {
         "  subgoal thresholds        [{}]",
         fmt(&spec.subgoal_thresholds)
     );
+    let angle_dims = |flags: &[bool]| {
+        let dims: Vec<String> = (0..flags.len())
+            .filter(|&d| flags[d])
+            .map(|d| d.to_string())
+            .collect();
+        dims.join(", ")
+    };
+    if spec.end_goal_angles.contains(&true) || spec.subgoal_angles.contains(&true) {
+        println!(
+            "  angle dims (circular)     end goal [{}]  subgoal [{}]",
+            angle_dims(&spec.end_goal_angles),
+            angle_dims(&spec.subgoal_angles)
+        );
+    }
     println!("  max primitive actions     {}", spec.max_actions);
     println!(
         "  physics steps per action  {}",

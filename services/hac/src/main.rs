@@ -281,7 +281,7 @@ struct EvalArgs {
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
-    /// Also print one JSON line per episode (success, primitive steps, final state).
+    /// Also print one JSON line per episode (success, primitive steps, end goal, final state).
     #[arg(long)]
     per_episode: bool,
 }
@@ -458,11 +458,11 @@ fn eval(args: EvalArgs) -> Result<()> {
     let run = config::load_run(&args.run)?;
     let episodes = args.episodes.unwrap_or(run.agent.test_episodes);
     let mut index = 0usize;
-    let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32]| {
+    let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], end_goal: &[f32]| {
         if args.per_episode {
             println!(
                 "{}",
-                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "final_state": state})
+                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": end_goal, "final_state": state})
             );
         }
         index += 1;

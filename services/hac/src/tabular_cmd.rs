@@ -156,13 +156,13 @@ pub fn load(run_dir: &Path, run: &RunConfig, seed: u64) -> Result<(FourRooms, Ta
 }
 
 /// `hac eval` for a grid world: `episodes` greedy test episodes of the run in `run_dir`, seeded
-/// by `seed`; calls `on_episode` with each outcome and final state; returns the success rate.
+/// by `seed`; calls `on_episode` with each outcome, final state and end goal; returns the success rate.
 pub fn evaluate(
     run_dir: &Path,
     run: &RunConfig,
     episodes: usize,
     seed: u64,
-    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32]),
+    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
 ) -> Result<f32> {
     let (mut env, mut agent) = load(run_dir, run, seed)?;
     let mut rng = Rng::seed_from(seed);
@@ -180,7 +180,7 @@ pub fn evaluate(
             &mut NullSink,
         );
         successes += usize::from(outcome.success);
-        on_episode(&outcome, env.state());
+        on_episode(&outcome, env.state(), hierarchy.end_goal());
     }
     Ok(successes as f32 / episodes.max(1) as f32)
 }

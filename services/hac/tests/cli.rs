@@ -112,6 +112,28 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     assert_eq!(result["episodes"], 4);
     let rate = result["success_rate"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&rate));
+
+    // --per-episode: one line per episode with its end goal and final state, then the summary.
+    let o = hac(&["eval", "--run", out_s, "--episodes", "3", "--per-episode"]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 4, "{lines:?}");
+    for (i, line) in lines[..3].iter().enumerate() {
+        let e: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(e["episode"], i);
+        // Mountain car's end goal is fixed at [0.48, 0.04] (ENVS.md); the state is [x, v].
+        let goal: Vec<f64> = serde_json::from_value(e["end_goal"].clone()).unwrap();
+        assert_eq!(goal.len(), 2, "{line}");
+        assert!(
+            (goal[0] - 0.48).abs() < 1e-6 && (goal[1] - 0.04).abs() < 1e-6,
+            "{line}"
+        );
+        let state: Vec<f64> = serde_json::from_value(e["final_state"].clone()).unwrap();
+        let reached = (state[0] - goal[0]).abs() <= 0.01 && (state[1] - goal[1]).abs() <= 0.02;
+        assert_eq!(e["success"], reached, "{line}");
+    }
+    assert!(lines[3].contains("success"), "{}", lines[3]);
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -223,6 +245,23 @@ fn env_list_and_describe() {
     assert_eq!(d["tabular"]["initial_q"], "pessimistic");
     let o = hac(&["env", "describe", "four-rooms"]);
     assert!(text(&o.stdout).contains("tabular Q-learning"));
+    // The UR5's joint angles are compared along the circle, its joint speeds are not.
+    let o = hac(&["env", "describe", "ur5-reacher", "--json"]);
+    let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
+    assert_eq!(
+        d["spec"]["end_goal_angles"],
+        serde_json::json!([true, true, true])
+    );
+    assert_eq!(
+        d["spec"]["subgoal_angles"],
+        serde_json::json!([true, true, true, false, false, false])
+    );
+    let o = hac(&["env", "describe", "ur5-reacher"]);
+    assert!(
+        text(&o.stdout).contains("end goal [0, 1, 2]  subgoal [0, 1, 2]"),
+        "{}",
+        text(&o.stdout)
+    );
     let o = hac(&["env", "describe", "nope"]);
     assert!(!o.status.success() && text(&o.stderr).contains("unknown environment"));
 }

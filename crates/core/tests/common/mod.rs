@@ -28,6 +28,8 @@ impl PointEnv {
             end_goal_thresholds: vec![threshold; dim],
             subgoal_bounds: Bounds::symmetric(&vec![extent; dim]),
             subgoal_thresholds: vec![threshold; dim],
+            end_goal_angles: Vec::new(),
+            subgoal_angles: Vec::new(),
             max_actions,
             physics_steps_per_action: 1,
         };
