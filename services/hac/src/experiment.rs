@@ -5,8 +5,9 @@
 //! Output directory layout:
 //! - `<env>-<k>l-seed<s>/`: one run directory per run, exactly as `hac train` writes it;
 //! - `<env>.svg`: the learning curves, mean +- 1 std over seeds, one curve per level count;
-//! - `summary.md`: per level count, episodes to 50% and 90% (median over the seeds that got
-//!   there, and how many did), final success (mean +- std), wall time.
+//! - `summary.md`: per level count, episodes to 50% and 90% (the median seed's, a seed that
+//!   never got there counting as the slowest, so "never" unless at least half did; and how many
+//!   did), final success (mean +- std), wall time.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -248,15 +249,15 @@ fn series(levels: usize, runs: &[&Finished]) -> plot::Series {
 
 fn summary_table(env: &str, groups: &[(usize, Vec<&Finished>)]) -> String {
     let mut s = format!(
-        "## {env}\n\n| levels | seeds | episodes to 50% (median, reached) | episodes to 90% (median, reached) | final success (mean +- std) | wall time per run (mean) |\n| --- | --- | --- | --- | --- | --- |\n"
+        "## {env}\n\n| levels | seeds | episodes to 50% (median seed; seeds that got there) | episodes to 90% (median seed; seeds that got there) | final success (mean +- std) | wall time per run (mean) |\n| --- | --- | --- | --- | --- | --- |\n"
     );
     for (k, runs) in groups {
         let to = |f: fn(&Summary) -> Option<u64>| {
             let mut hits: Vec<u64> = runs.iter().filter_map(|r| f(&r.summary)).collect();
             hits.sort_unstable();
-            match hits.len() {
-                0 => format!("never (0 of {})", runs.len()),
-                n => format!("{} ({n} of {})", median(&hits), runs.len()),
+            match median_seed(&hits, runs.len()) {
+                Some(episodes) => format!("{episodes} ({} of {})", hits.len(), runs.len()),
+                None => format!("never ({} of {})", hits.len(), runs.len()),
             }
         };
         let finals: Vec<f64> = runs
@@ -282,10 +283,11 @@ fn summary_table(env: &str, groups: &[(usize, Vec<&Finished>)]) -> String {
     s
 }
 
-/// Median of a sorted, non-empty slice (the lower middle for an even count, so it is a value
-/// that occurred).
-fn median(sorted: &[u64]) -> u64 {
-    sorted[(sorted.len() - 1) / 2]
+/// The median seed's count among `seeds` runs, of which those in `reached` (sorted) got there: a
+/// seed that never did counts as slower than every other, so fewer than half reaching gives
+/// `None`. The lower middle for an even count, so it is a value that occurred.
+fn median_seed(reached: &[u64], seeds: usize) -> Option<u64> {
+    reached.get(seeds.max(1).div_ceil(2) - 1).copied()
 }
 
 #[cfg(test)]
@@ -293,9 +295,16 @@ mod tests {
     use super::*;
 
     #[test]
-    fn mean_std_and_median() {
+    fn mean_std_and_median_seed() {
         assert_eq!(mean_std(&[1.0, 3.0]), (2.0, 1.0));
-        assert_eq!(median(&[100, 200, 300]), 200);
-        assert_eq!(median(&[100, 200]), 100);
+        assert_eq!(median_seed(&[100, 200, 300], 3), Some(200));
+        assert_eq!(median_seed(&[100, 200], 2), Some(100));
+        // Seeds that never got there are the slowest: 3 of 5 is enough, 2 of 5 is not.
+        assert_eq!(median_seed(&[100, 200, 300], 5), Some(300));
+        assert_eq!(median_seed(&[100, 200], 5), None);
+        assert_eq!(median_seed(&[], 4), None);
+        // An even count takes the lower middle: the 5th fastest of 10.
+        assert_eq!(median_seed(&[1, 2, 3, 4, 5], 10), Some(5));
+        assert_eq!(median_seed(&[1, 2, 3, 4], 10), None);
     }
 }
