@@ -14,8 +14,8 @@ mod run_config;
 use std::path::Path;
 
 use hac_core::{
-    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, GaussianExploration, Hierarchy, Mode,
-    NullSink, Policy, Rng,
+    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, Exploration, GaussianExploration,
+    Hierarchy, Mode, NullSink, Policy, Rng,
 };
 use hac_nn::{LearnerConfig, LevelLearner, NnError};
 use serde::{Deserialize, Serialize};
@@ -229,7 +229,7 @@ pub fn test_episodes(
     hierarchy: &mut Hierarchy,
     env: &mut dyn Env,
     agent: &mut impl Policy,
-    exploration: &mut GaussianExploration,
+    exploration: &mut impl Exploration,
     rng: &mut Rng,
     episodes: usize,
     mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),

@@ -35,6 +35,17 @@ fn t(
     }
 }
 
+/// Level `level`'s transitions in `got` whose kind passes `keep`, in order.
+fn of_level(
+    got: &[OwnedTransition],
+    level: usize,
+    keep: impl Fn(TransitionKind) -> bool,
+) -> Vec<&OwnedTransition> {
+    got.iter()
+        .filter(|t| t.level == level && keep(t.kind))
+        .collect()
+}
+
 /// The HER block of one call: every attempt relabelled with each picked achieved goal.
 fn her_block(level: usize, attempts: &[(f32, f32, f32)], picks: &[usize]) -> Vec<OwnedTransition> {
     let mut out = Vec::new();
@@ -149,10 +160,7 @@ fn reached_subgoal_is_its_own_hindsight_action_and_test_passes_without_penalty()
         Mode::Train,
         &mut got,
     );
-    let level0_ha: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 0 && t.kind == HindsightAction)
-        .collect();
+    let level0_ha = of_level(&got, 0, |k| k == HindsightAction);
     assert_eq!(
         level0_ha.len(),
         3,
@@ -162,10 +170,7 @@ fn reached_subgoal_is_its_own_hindsight_action_and_test_passes_without_penalty()
         *level0_ha[2],
         t(0, HindsightAction, 2.0, 1.0, 0.0, 3.0, 3.0, true)
     );
-    let level1: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 1 && t.kind != HindsightGoal)
-        .collect();
+    let level1 = of_level(&got, 1, |k| k != HindsightGoal);
     assert_eq!(
         level1,
         vec![&t(1, HindsightAction, 0.0, 3.0, -1.0, 3.0, FLAG, false)]
@@ -245,10 +250,7 @@ fn environment_termination_ends_the_episode_and_stops_bootstrapping() {
     );
     assert_eq!(outcome.steps, 3);
     assert!(!outcome.success);
-    let level0: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 0 && t.kind == HindsightAction)
-        .collect();
+    let level0 = of_level(&got, 0, |k| k == HindsightAction);
     // Missed goal, reward -1; only the step into the terminal state stops bootstrapping.
     assert_eq!(
         level0.iter().map(|t| t.terminal).collect::<Vec<_>>(),
@@ -304,10 +306,7 @@ fn angle_goals_are_reached_one_turn_away() {
     );
     assert!(outcome.success);
     assert_eq!(outcome.steps, 7);
-    let level0: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 0 && t.kind == HindsightAction)
-        .collect();
+    let level0 = of_level(&got, 0, |k| k == HindsightAction);
     // The third move reaches the subgoal: reward 0, terminal, and level 0 returns.
     assert_eq!(
         *level0[2],
@@ -315,10 +314,7 @@ fn angle_goals_are_reached_one_turn_away() {
     );
     // Level 1: the tested subgoal was reached, so it is its own hindsight action and there is no
     // penalty; the second attempt reaches the end goal.
-    let level1: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 1 && t.kind != HindsightGoal)
-        .collect();
+    let level1 = of_level(&got, 1, |k| k != HindsightGoal);
     assert_eq!(
         level1,
         vec![

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use hac_agent::{LevelReport, RoundReport};
-use hac_core::{Env, EpisodeOutcome, Hierarchy, Mode, NullSink, Rng};
+use hac_core::{Env, EpisodeOutcome, Hierarchy, Rng};
 use hac_tabular::{FourRooms, TabularAgent, TabularHac};
 
 use crate::config::RunConfig;
@@ -162,25 +162,20 @@ pub fn evaluate(
     run: &RunConfig,
     episodes: usize,
     seed: u64,
-    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
 ) -> Result<f32> {
     let (mut env, mut agent) = load(run_dir, run, seed)?;
     let mut rng = Rng::seed_from(seed);
     // Never consulted in test mode, where every level acts greedily.
     let mut exploration = agent.exploration(&run.agent, rng.fork());
     let mut hierarchy = Hierarchy::new(env.spec(), &run.agent);
-    let mut successes = 0usize;
-    for _ in 0..episodes {
-        let outcome = hierarchy.run_episode(
-            &mut env,
-            &mut agent,
-            &mut exploration,
-            Mode::Test,
-            &mut rng,
-            &mut NullSink,
-        );
-        successes += usize::from(outcome.success);
-        on_episode(&outcome, env.state(), hierarchy.end_goal());
-    }
-    Ok(successes as f32 / episodes.max(1) as f32)
+    Ok(hac_agent::test_episodes(
+        &mut hierarchy,
+        &mut env,
+        &mut agent,
+        &mut exploration,
+        &mut rng,
+        episodes,
+        on_episode,
+    ))
 }
