@@ -29,8 +29,11 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
             "mountain-car",
             "--levels",
             "2",
+            // Embedded runs first succeed after 30-90 episodes, free-running trainers later
+            // (80-100 under load, one run in four still at 0 after 100): 200 leaves margin (8
+            // of 8 runs four at a time on 2 cores had a best round of 0.40-0.75).
             "--episodes",
-            "100",
+            "200",
             "--set",
             "test_episodes=20",
             "--listen",
@@ -86,7 +89,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         .parse()
         .unwrap();
     assert!(
-        last_episodes >= 100,
+        last_episodes >= 200,
         "the last evaluation covers the budget:\n{csv}"
     );
     // Learned from nothing: untrained greedy agents never reach the flag (see the embedded
