@@ -452,6 +452,10 @@ struct Shared {
     /// Ingest and evaluation reports hold it shared; a checkpoint holds it exclusively, which
     /// pauses them so that counters, replay and curve form one cut.
     gate: RwLock<()>,
+    /// An ingest holds it shared while it inserts a batch and counts it; [`Shared::status`]
+    /// holds it exclusively while it reads the replay totals and the transition counter, so a
+    /// status's per-level totals add up to its total. Innermost: nothing is taken under it.
+    counting: RwLock<()>,
     snapshots: Snapshots,
 }
 
@@ -699,6 +703,7 @@ impl Learner {
                 Duration::try_from_secs_f64(r.elapsed_s).unwrap_or_default()
             }),
             gate: RwLock::new(()),
+            counting: RwLock::new(()),
             snapshots: Snapshots {
                 requested: (0..levels).map(|_| AtomicBool::new(false)).collect(),
                 taken: Mutex::new(vec![None; levels]),
@@ -1067,13 +1072,16 @@ impl Shared {
                 let shard = (actor.ordinal as usize + actor.batches as usize) % table.shard_count();
                 actor.batches += 1;
                 self.limiters[level].record_insert(batch.len);
-                table.insert_batch_into(shard, batch);
+                {
+                    let _counting = self.counting.read();
+                    table.insert_batch_into(shard, batch);
+                    counters.batches.fetch_add(1, Ordering::Relaxed);
+                    counters
+                        .transitions
+                        .fetch_add(batch.len as u64, Ordering::Relaxed);
+                }
                 actor.transitions += batch.len as u64;
                 actor.weights_version = actor.weights_version.max(weights_version);
-                counters.batches.fetch_add(1, Ordering::Relaxed);
-                counters
-                    .transitions
-                    .fetch_add(batch.len as u64, Ordering::Relaxed);
             }
             IngestItemRef::Episode {
                 env_steps,
@@ -1496,20 +1504,31 @@ impl Shared {
     fn status(&self) -> LearnerStatus {
         let c = &self.counters;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        // One cut of what ingest inserts and counts together.
+        let (tables, transitions, batches) = {
+            let _counting = self.counting.write();
+            let tables: Vec<(u64, Vec<usize>)> = (0..self.slots.len())
+                .map(|level| {
+                    let table = self.replay.table(level);
+                    (table.inserted_total(), table.shard_lens().collect())
+                })
+                .collect();
+            (tables, load(&c.transitions), load(&c.batches))
+        };
         let mut levels: Vec<LevelStatus> = self
             .slots
             .iter()
+            .zip(tables)
             .enumerate()
-            .map(|(level, slot)| {
-                let table = self.replay.table(level);
+            .map(|(level, (slot, (inserted, shard_lens)))| {
                 let slot = slot.lock();
                 LevelStatus {
                     updates: slot.completed,
                     updates_per_s: 0.0,
-                    replay_len: table.len(),
-                    replay_capacity: table.capacity(),
-                    shard_lens: table.shard_lens().collect(),
-                    transitions_inserted: table.inserted_total(),
+                    replay_len: shard_lens.iter().sum(),
+                    replay_capacity: self.replay.table(level).capacity(),
+                    shard_lens,
+                    transitions_inserted: inserted,
                     last: slot.last,
                     limiter: self.limiters[level].status(),
                 }
@@ -1544,12 +1563,7 @@ impl Shared {
             })
             .collect();
         actors.sort_by(|a, b| a.actor_id.cmp(&b.actor_id));
-        let (transitions, batches, episodes, env_steps) = (
-            load(&c.transitions),
-            load(&c.batches),
-            load(&c.episodes),
-            load(&c.env_steps),
-        );
+        let (episodes, env_steps) = (load(&c.episodes), load(&c.env_steps));
         let totals: Vec<u64> = [transitions, batches, episodes, env_steps]
             .into_iter()
             .chain(levels.iter().map(|l| l.updates))

@@ -132,6 +132,49 @@ fn every_message_is_stored_once_and_resends_count_as_duplicates() {
 }
 
 #[test]
+fn a_status_taken_during_ingest_adds_up() {
+    let learner = start(100);
+    let actors: Vec<(String, u64)> = ["a", "b"]
+        .iter()
+        .map(|id| {
+            let inc = learner
+                .register(registration(id, ActorRole::Trainer))
+                .unwrap()
+                .incarnation;
+            (id.to_string(), inc)
+        })
+        .collect();
+    let batches = 2000;
+    std::thread::scope(|scope| {
+        for (id, inc) in &actors {
+            let learner = &learner;
+            scope.spawn(move || {
+                for seq in 1..=batches {
+                    let level = (seq % 2) as usize;
+                    let r = learner.ingest(&msg(id, *inc, seq, batch(learner, level, 3)));
+                    assert_eq!(r.unwrap(), Stored::New);
+                }
+            });
+        }
+        // Statuses taken while both actors insert: the per-level totals are one cut with the
+        // run's total and batch count, whenever the status is taken.
+        loop {
+            let s = learner.status();
+            let per_level: u64 = s.levels.iter().map(|l| l.transitions_inserted).sum();
+            assert_eq!(per_level, s.transitions, "{s:?}");
+            assert_eq!(s.transitions, 3 * s.batches, "{s:?}");
+            for l in &s.levels {
+                assert_eq!(l.shard_lens.iter().sum::<usize>(), l.replay_len, "{l:?}");
+            }
+            if s.batches == 2 * batches {
+                break;
+            }
+        }
+    });
+    learner.shutdown();
+}
+
+#[test]
 fn bad_messages_are_refused_by_reason_and_store_nothing() {
     let learner = start(100);
     let inc = learner
