@@ -74,6 +74,11 @@ pub struct AgentConfig {
     /// Polyak rate of target networks; absent = no target networks (the reference's setting).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_tau: Option<f32>,
+    /// Weight of an L2 penalty on the actor's pre-`tanh` outputs (mean square), added to its
+    /// loss `-Q`; 0 = HAC.md's actor loss. A safeguard against an actor stuck at a corner of its
+    /// bounds where a saturated critic gives no gradient.
+    #[serde(default)]
+    pub actor_preactivation_l2: f32,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).
     pub episodes_to_store: usize,
     /// Upper bound on any level's replay capacity.
@@ -106,6 +111,7 @@ impl AgentConfig {
             batch_size: 1024,
             updates_per_episode: 40,
             target_tau: None,
+            actor_preactivation_l2: 0.0,
             episodes_to_store: 200,
             replay_capacity_max: 10_000_000,
             exploration_episodes: 50,
@@ -194,6 +200,13 @@ impl AgentConfig {
                     format!("must be in (0, 1], got {tau}"),
                 ));
             }
+        }
+        let l2 = self.actor_preactivation_l2;
+        if !(l2.is_finite() && l2 >= 0.0) {
+            return Err(ConfigError::invalid(
+                "actor_preactivation_l2",
+                format!("must be a finite number >= 0, got {l2}"),
+            ));
         }
         self.action_noise.check("action_noise", action_dim)?;
         self.subgoal_noise.check("subgoal_noise", subgoal_dim)?;

@@ -24,6 +24,7 @@ fn config(action: usize) -> LearnerConfig {
         actor_lr: 1e-3,
         critic_lr: 1e-3,
         target_tau: None,
+        actor_preactivation_l2: 0.0,
     }
 }
 

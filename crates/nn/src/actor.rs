@@ -178,6 +178,18 @@ impl Actor {
         }
     }
 
+    /// [`Actor::forward_batch`] that also copies the pre-activations `x` (before `tanh`) into
+    /// `pre` (resized to `action x batch`), for [`Actor::backward_batch`]'s penalty: at
+    /// saturation `tanh(x)` rounds to 1 and cannot give `x` back.
+    pub(crate) fn forward_batch_keeping_pre(&self, ws: &mut MlpWorkspace, pre: &mut Vec<f32>) {
+        self.mlp.forward(ws);
+        pre.clear();
+        pre.extend_from_slice(ws.output());
+        for v in ws.output_mut() {
+            *v = v.tanh();
+        }
+    }
+
     /// Writes the actions of the last [`Actor::forward_batch`] into rows `row..row + action` of
     /// the column-major `dst_rows x batch` matrix `dst`.
     pub(crate) fn write_actions(
@@ -205,12 +217,33 @@ impl Actor {
 
     /// Sets `grads` to the parameter gradient, given the loss gradient with respect to the actions
     /// in `ws.output_grad_mut()` (consumed).
-    pub(crate) fn backward_batch(&self, ws: &mut MlpWorkspace, grads: &mut MlpGrads) {
+    ///
+    /// With `penalty = Some((pre, c))` (`pre` from [`Actor::forward_batch_keeping_pre`]) the
+    /// loss also holds `c sum(x^2) / (action x batch)`, the pre-activations' mean square, whose
+    /// gradient `2 c x / (action x batch)` still pulls a saturated output back where the
+    /// action gradient through `tanh` has vanished.
+    pub(crate) fn backward_batch(
+        &self,
+        ws: &mut MlpWorkspace,
+        grads: &mut MlpGrads,
+        penalty: Option<(&[f32], f32)>,
+    ) {
         let a = self.dims.action;
         let (t, g) = ws.output_and_grad_mut();
         for (gc, tc) in g.chunks_exact_mut(a).zip(t.chunks_exact(a)) {
             for ((g, t), s) in gc.iter_mut().zip(tc).zip(&self.scale) {
                 *g *= s * (1.0 - t * t);
+            }
+        }
+        if let Some((pre, c)) = penalty {
+            assert_eq!(
+                pre.len(),
+                g.len(),
+                "actor: pre-activations of another batch"
+            );
+            let k = 2.0 * c / g.len() as f32;
+            for (g, x) in g.iter_mut().zip(pre) {
+                *g += k * x;
             }
         }
         self.mlp.backward(ws, Some(grads), 0..0);
@@ -268,7 +301,7 @@ mod tests {
         batch_actions(&actor, &mut ws, &states, &goals);
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(actor.mlp());
-        actor.backward_batch(&mut ws, &mut grads);
+        actor.backward_batch(&mut ws, &mut grads, None);
 
         // The loss sum(R * action) on the f64 reference network.
         let sizes = actor.mlp().sizes();
@@ -282,6 +315,50 @@ mod tests {
             (0..u.len())
                 .map(|i| r[i] * (u[i].tanh() * scale[i % 2] + offset[i % 2]))
                 .sum::<f64>()
+        };
+        let fd = fd_param_gradients(&mut params_f64(actor.mlp()), loss);
+        for (t, (got, want)) in grads.tensors().zip(&fd).enumerate() {
+            assert_grad_close(got, want, &format!("actor tensor {t}"));
+        }
+    }
+
+    #[test]
+    fn the_preactivation_penalty_adds_its_exact_gradient() {
+        let mut rng = Rng::seed_from(14);
+        let mut actor = actor(15);
+        for t in actor.mlp_mut().tensors_mut() {
+            t.copy_from_slice(&uniform_vec(&mut rng, t.len(), 0.7));
+        }
+        let n = 7;
+        let states = uniform_vec(&mut rng, DIMS.state * n, 2.0);
+        let goals = uniform_vec(&mut rng, DIMS.goal * n, 2.0);
+        let r = uniform_vec(&mut rng, DIMS.action * n, 1.0);
+        let c = 0.3;
+        let mut ws = MlpWorkspace::new(actor.mlp(), n);
+        let mut pre = Vec::new();
+        actor.fill_input(&mut ws, &states, &goals);
+        actor.forward_batch_keeping_pre(&mut ws, &mut pre);
+        assert_eq!(pre.len(), DIMS.action * n);
+        let tanh_of_pre: Vec<f32> = pre.iter().map(|x| x.tanh()).collect();
+        assert_eq!(ws.output(), tanh_of_pre.as_slice());
+        ws.output_grad_mut().copy_from_slice(&r);
+        let mut grads = MlpGrads::new(actor.mlp());
+        actor.backward_batch(&mut ws, &mut grads, Some((&pre, c)));
+
+        // The loss sum(R * action) + c mean(x^2) on the f64 reference network.
+        let sizes = actor.mlp().sizes();
+        let mut x = vec![0.0; (DIMS.state + DIMS.goal) * n];
+        copy_rows(&mut x, 6, 0, &states, 3);
+        copy_rows(&mut x, 6, 3, &goals, 3);
+        let (x, r) = (widen(&x), widen(&r));
+        let (scale, offset) = (widen(actor.output_scale()), widen(actor.output_offset()));
+        let loss = |p: &[Vec<f64>]| {
+            let u = reference_forward(&sizes, p, &x, n);
+            let actions: f64 = (0..u.len())
+                .map(|i| r[i] * (u[i].tanh() * scale[i % 2] + offset[i % 2]))
+                .sum();
+            let mean_sq = u.iter().map(|u| u * u).sum::<f64>() / u.len() as f64;
+            actions + f64::from(c) * mean_sq
         };
         let fd = fd_param_gradients(&mut params_f64(actor.mlp()), loss);
         for (t, (got, want)) in grads.tensors().zip(&fd).enumerate() {

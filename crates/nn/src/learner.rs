@@ -29,6 +29,9 @@ pub struct LearnerConfig {
     /// Polyak rate of target networks; `None` (the reference's setting) bootstraps from the
     /// online networks.
     pub target_tau: Option<f32>,
+    /// Weight of the mean square of the actor's pre-`tanh` outputs in its loss; 0 (HAC.md's
+    /// loss) leaves it out.
+    pub actor_preactivation_l2: f32,
 }
 
 impl LearnerConfig {
@@ -43,6 +46,7 @@ impl LearnerConfig {
             actor_lr: agent.actor_lr,
             critic_lr: agent.critic_lr,
             target_tau: agent.target_tau,
+            actor_preactivation_l2: agent.actor_preactivation_l2,
         }
     }
 
@@ -134,6 +138,8 @@ pub struct LevelLearner {
     critic_grads: MlpGrads,
     /// The critic's regression targets for the current batch.
     y: Vec<f32>,
+    /// The actor's pre-activations in the actor step, kept only for the penalty.
+    actor_pre: Vec<f32>,
 }
 
 impl LevelLearner {
@@ -161,6 +167,7 @@ impl LevelLearner {
             actor_grads: MlpGrads::new(actor.mlp()),
             critic_grads: MlpGrads::new(critic.mlp()),
             y: Vec::new(),
+            actor_pre: Vec::new(),
             targets,
             config,
             actor,
@@ -276,13 +283,23 @@ impl LevelLearner {
     }
 
     /// One Adam step on the actor's loss `-mean Q(s, g, pi(s, g))`, whose gradient reaches the
-    /// actor through the critic's action input; returns the loss from before the step.
+    /// actor through the critic's action input; returns that loss from before the step.
+    ///
+    /// With `actor_preactivation_l2 = c > 0` the loss also holds `c` times the mean square of
+    /// the actor's pre-`tanh` outputs (not part of the returned value). Where the critic is flat
+    /// (its `-H sigmoid` rounded to `-H`) and the actor sits at a corner of its bounds, the first
+    /// term's gradient is exactly zero and only this one moves the actor.
     ///
     /// Runs after [`LevelLearner::critic_step`], whose state and goal rows it reuses.
     fn actor_step(&mut self, batch: &Fields<'_>) -> f32 {
         let (actor, critic) = (&mut self.actor, &self.critic);
+        let c = self.config.actor_preactivation_l2;
         actor.fill_input(&mut self.actor_ws, batch.states, batch.goals);
-        actor.forward_batch(&mut self.actor_ws);
+        if c > 0.0 {
+            actor.forward_batch_keeping_pre(&mut self.actor_ws, &mut self.actor_pre);
+        } else {
+            actor.forward_batch(&mut self.actor_ws);
+        }
         let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
         actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
         critic.forward_batch(&mut self.critic_ws);
@@ -297,7 +314,8 @@ impl LevelLearner {
         self.actor_ws
             .output_grad_mut()
             .copy_from_slice(self.critic_ws.input_grad());
-        actor.backward_batch(&mut self.actor_ws, &mut self.actor_grads);
+        let penalty = (c > 0.0).then_some((self.actor_pre.as_slice(), c));
+        actor.backward_batch(&mut self.actor_ws, &mut self.actor_grads, penalty);
         let grads = self.actor_grads.tensors();
         self.actor_opt
             .step(actor.mlp_mut().tensors_mut().zip(grads));
@@ -407,6 +425,7 @@ mod tests {
             actor_lr: 1e-3,
             critic_lr: 1e-3,
             target_tau,
+            actor_preactivation_l2: 0.0,
         }
     }
 
@@ -527,6 +546,81 @@ mod tests {
             .sum::<f32>()
             .sqrt();
         assert!(dist < 0.3, "action {action:?}, best {best:?}");
+    }
+
+    /// A learner whose actor outputs sit at the corner `(2, 1)` of its bounds with pre-activations
+    /// of about 40 (tanh rounds to 1), and whose critic reads exactly `-H` everywhere (its output
+    /// bias far up the sigmoid): the failure HAC.md's loss cannot leave.
+    fn stuck_at_a_corner(actor_preactivation_l2: f32) -> LevelLearner {
+        let mut rng = Rng::seed_from(35);
+        let mut learner = LevelLearner::new(
+            LearnerConfig {
+                actor_preactivation_l2,
+                ..config(None)
+            },
+            &mut rng,
+        );
+        let actor_bias = learner.actor.mlp_mut().tensors_mut().last().unwrap();
+        actor_bias.fill(40.0);
+        let critic_bias = learner.critic.mlp_mut().tensors_mut().last().unwrap();
+        critic_bias.fill(1000.0);
+        learner
+    }
+
+    fn mean_action(learner: &mut LevelLearner, batch: &Batch) -> [f32; 2] {
+        let mut sum = [0.0; 2];
+        let mut a = [0.0; 2];
+        for (s, g) in batch
+            .states
+            .chunks_exact(DIMS.state)
+            .zip(batch.goals.chunks_exact(DIMS.goal))
+        {
+            learner.act(s, g, &mut a);
+            sum[0] += a[0];
+            sum[1] += a[1];
+        }
+        sum.map(|v| v / batch.len as f32)
+    }
+
+    #[test]
+    fn a_saturated_actor_on_a_flat_critic_stays_stuck_without_the_penalty() {
+        let mut rng = Rng::seed_from(36);
+        let batch = random_batch(&mut rng, 64);
+        let mut learner = stuck_at_a_corner(0.0);
+        let actor = learner.actor.mlp().clone();
+        for _ in 0..50 {
+            let stats = learner.update(&batch);
+            assert_eq!(stats.actor_loss, 10.0, "the critic reads exactly -H");
+        }
+        assert_eq!(mean_action(&mut learner, &batch), [2.0, 1.0]);
+        assert!(
+            learner
+                .actor
+                .mlp()
+                .tensors()
+                .zip(actor.tensors())
+                .all(|(a, b)| a == b),
+            "a zero gradient moves nothing"
+        );
+    }
+
+    #[test]
+    fn the_preactivation_penalty_pulls_a_saturated_actor_off_the_corner() {
+        let mut rng = Rng::seed_from(36);
+        let batch = random_batch(&mut rng, 64);
+        let mut learner = stuck_at_a_corner(1e-3);
+        // Adam moves each parameter by about the learning rate per step whatever the gradient's
+        // size, so even a small weight brings the pre-activations from 40 towards 0 within a
+        // few thousand steps; the critic stays flat, so the penalty is all that acts.
+        for _ in 0..5000 {
+            learner.update(&batch);
+        }
+        let [a0, a1] = mean_action(&mut learner, &batch);
+        // The bounds are [-2, 2] x [0, 1]: the middle is (0, 0.5).
+        assert!(
+            a0.abs() < 1.0 && (a1 - 0.5).abs() < 0.25,
+            "mean action ({a0}, {a1})"
+        );
     }
 
     #[test]

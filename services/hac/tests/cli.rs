@@ -148,6 +148,10 @@ fn bad_configuration_is_rejected_before_training_with_the_key_named() {
         (&["--set", "horizn=5"], "horizn"),
         (&["--set", "hidden_layers=[64, 0]"], "hidden_layers"),
         (&["--set", "action_noise=[0.1, 0.2]"], "action_noise"),
+        (
+            &["--set", "actor_preactivation_l2=-0.1"],
+            "actor_preactivation_l2",
+        ),
         (&["--stop-at", "2"], "stop_at"),
         (&["--set", "batch_size"], "KEY=VALUE"),
     ];
