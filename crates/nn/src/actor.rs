@@ -285,11 +285,13 @@ mod tests {
         a
     }
 
-    #[test]
-    fn backward_through_tanh_scaling_matches_finite_differences() {
-        let mut rng = Rng::seed_from(11);
-        let mut actor = actor(10);
-        // Weights far from the small initial output layer, so that tanh is far from linear.
+    /// Checks [`Actor::backward_batch`] against finite differences of the loss
+    /// `sum(R * action) + c mean(x^2)` (`x` the pre-activations; `c` 0 without a penalty) on the
+    /// f64 reference network, with weights far from the small initial output layer so that tanh
+    /// is far from linear.
+    fn check_backward_against_finite_differences(seed: u64, penalty: Option<f32>) {
+        let mut rng = Rng::seed_from(seed);
+        let mut actor = actor(seed + 1);
         for t in actor.mlp_mut().tensors_mut() {
             t.copy_from_slice(&uniform_vec(&mut rng, t.len(), 0.7));
         }
@@ -298,23 +300,32 @@ mod tests {
         let goals = uniform_vec(&mut rng, DIMS.goal * n, 2.0);
         let r = uniform_vec(&mut rng, DIMS.action * n, 1.0);
         let mut ws = MlpWorkspace::new(actor.mlp(), n);
-        batch_actions(&actor, &mut ws, &states, &goals);
+        let mut pre = Vec::new();
+        actor.fill_input(&mut ws, &states, &goals);
+        if penalty.is_some() {
+            actor.forward_batch_keeping_pre(&mut ws, &mut pre);
+            let tanh_of_pre: Vec<f32> = pre.iter().map(|x| x.tanh()).collect();
+            assert_eq!(ws.output(), tanh_of_pre.as_slice());
+        } else {
+            actor.forward_batch(&mut ws);
+        }
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(actor.mlp());
-        actor.backward_batch(&mut ws, &mut grads, None);
+        actor.backward_batch(&mut ws, &mut grads, penalty.map(|c| (pre.as_slice(), c)));
 
-        // The loss sum(R * action) on the f64 reference network.
         let sizes = actor.mlp().sizes();
         let mut x = vec![0.0; (DIMS.state + DIMS.goal) * n];
         copy_rows(&mut x, 6, 0, &states, 3);
         copy_rows(&mut x, 6, 3, &goals, 3);
         let (x, r) = (widen(&x), widen(&r));
         let (scale, offset) = (widen(actor.output_scale()), widen(actor.output_offset()));
+        let c = f64::from(penalty.unwrap_or(0.0));
         let loss = |p: &[Vec<f64>]| {
             let u = reference_forward(&sizes, p, &x, n);
-            (0..u.len())
+            let actions: f64 = (0..u.len())
                 .map(|i| r[i] * (u[i].tanh() * scale[i % 2] + offset[i % 2]))
-                .sum::<f64>()
+                .sum();
+            actions + c * u.iter().map(|u| u * u).sum::<f64>() / u.len() as f64
         };
         let fd = fd_param_gradients(&mut params_f64(actor.mlp()), loss);
         for (t, (got, want)) in grads.tensors().zip(&fd).enumerate() {
@@ -323,47 +334,13 @@ mod tests {
     }
 
     #[test]
-    fn the_preactivation_penalty_adds_its_exact_gradient() {
-        let mut rng = Rng::seed_from(14);
-        let mut actor = actor(15);
-        for t in actor.mlp_mut().tensors_mut() {
-            t.copy_from_slice(&uniform_vec(&mut rng, t.len(), 0.7));
-        }
-        let n = 7;
-        let states = uniform_vec(&mut rng, DIMS.state * n, 2.0);
-        let goals = uniform_vec(&mut rng, DIMS.goal * n, 2.0);
-        let r = uniform_vec(&mut rng, DIMS.action * n, 1.0);
-        let c = 0.3;
-        let mut ws = MlpWorkspace::new(actor.mlp(), n);
-        let mut pre = Vec::new();
-        actor.fill_input(&mut ws, &states, &goals);
-        actor.forward_batch_keeping_pre(&mut ws, &mut pre);
-        assert_eq!(pre.len(), DIMS.action * n);
-        let tanh_of_pre: Vec<f32> = pre.iter().map(|x| x.tanh()).collect();
-        assert_eq!(ws.output(), tanh_of_pre.as_slice());
-        ws.output_grad_mut().copy_from_slice(&r);
-        let mut grads = MlpGrads::new(actor.mlp());
-        actor.backward_batch(&mut ws, &mut grads, Some((&pre, c)));
+    fn backward_through_tanh_scaling_matches_finite_differences() {
+        check_backward_against_finite_differences(10, None);
+    }
 
-        // The loss sum(R * action) + c mean(x^2) on the f64 reference network.
-        let sizes = actor.mlp().sizes();
-        let mut x = vec![0.0; (DIMS.state + DIMS.goal) * n];
-        copy_rows(&mut x, 6, 0, &states, 3);
-        copy_rows(&mut x, 6, 3, &goals, 3);
-        let (x, r) = (widen(&x), widen(&r));
-        let (scale, offset) = (widen(actor.output_scale()), widen(actor.output_offset()));
-        let loss = |p: &[Vec<f64>]| {
-            let u = reference_forward(&sizes, p, &x, n);
-            let actions: f64 = (0..u.len())
-                .map(|i| r[i] * (u[i].tanh() * scale[i % 2] + offset[i % 2]))
-                .sum();
-            let mean_sq = u.iter().map(|u| u * u).sum::<f64>() / u.len() as f64;
-            actions + f64::from(c) * mean_sq
-        };
-        let fd = fd_param_gradients(&mut params_f64(actor.mlp()), loss);
-        for (t, (got, want)) in grads.tensors().zip(&fd).enumerate() {
-            assert_grad_close(got, want, &format!("actor tensor {t}"));
-        }
+    #[test]
+    fn the_preactivation_penalty_adds_its_exact_gradient() {
+        check_backward_against_finite_differences(14, Some(0.3));
     }
 
     #[test]
