@@ -73,6 +73,16 @@ impl EnvSpec {
         }
     }
 
+    /// The goal test of the top level (`end_goal`) or of a level below it: per-dimension
+    /// thresholds and angle flags, as [`crate::within_goal`] takes them.
+    pub fn goal_test(&self, end_goal: bool) -> (&[f32], &[bool]) {
+        if end_goal {
+            (&self.end_goal_thresholds, &self.end_goal_angles)
+        } else {
+            (&self.subgoal_thresholds, &self.subgoal_angles)
+        }
+    }
+
     /// The bounds of level `level`'s output.
     pub fn level_action_bounds(&self, level: usize) -> &Bounds {
         if level == 0 {

@@ -344,23 +344,16 @@ impl Hierarchy {
         let top = self.levels.len() - 1;
         let mut highest = None;
         for (l, level) in self.levels.iter_mut().enumerate() {
-            let (projected, threshold, angles) = if l == top {
+            let projected = if l == top {
                 let p = &mut self.projected[..self.spec.end_goal_dim];
                 env.project_end_goal(&self.state, p);
-                (
-                    &*p,
-                    &self.spec.end_goal_thresholds,
-                    &self.spec.end_goal_angles,
-                )
+                &*p
             } else {
                 let p = &mut self.projected[..self.spec.subgoal_dim()];
                 env.project_subgoal(&self.state, p);
-                (
-                    &*p,
-                    &self.spec.subgoal_thresholds,
-                    &self.spec.subgoal_angles,
-                )
+                &*p
             };
+            let (threshold, angles) = self.spec.goal_test(l == top);
             level.reached = within_goal(projected, &level.goal, threshold, angles);
             if level.reached {
                 highest = Some(l);
@@ -465,11 +458,7 @@ impl Hierarchy {
         }
         picks[goals - 1] = n - 1;
         picks.sort_unstable();
-        let (threshold, angles) = if i == top {
-            (&self.spec.end_goal_thresholds, &self.spec.end_goal_angles)
-        } else {
-            (&self.spec.subgoal_thresholds, &self.spec.subgoal_angles)
-        };
+        let (threshold, angles) = self.spec.goal_test(i == top);
         let her = &lv.her;
         let (sd, ad, gd) = (self.spec.state_dim, lv.action.len(), lv.goal.len());
         for &pick in picks.iter() {

@@ -102,11 +102,7 @@ fn check(r: &Run) -> Result<(), TestCaseError> {
     for level in 0..r.levels {
         let stream: Vec<&OwnedTransition> =
             r.transitions.iter().filter(|t| t.level == level).collect();
-        let (threshold, angles) = if level == top {
-            (&spec.end_goal_thresholds, &spec.end_goal_angles)
-        } else {
-            (&spec.subgoal_thresholds, &spec.subgoal_angles)
-        };
+        let (threshold, angles) = spec.goal_test(level == top);
         for t in &stream {
             match t.kind {
                 TransitionKind::SubgoalPenalty => {

@@ -342,9 +342,9 @@ fn angle_goals_are_reached_one_turn_away() {
     );
     // HER at level 0 of the first call relabels with the achieved 1.0 (pick 0) and 3.0 (last);
     // rewards compare along the circle as well, so nothing else counts as reached.
-    let her0: Vec<_> = got
-        .iter()
-        .filter(|t| t.level == 0 && t.kind == HindsightGoal && t.goal == [3.0])
+    let her0: Vec<_> = of_level(&got, 0, |k| k == HindsightGoal)
+        .into_iter()
+        .filter(|t| t.goal == [3.0])
         .map(|t| t.reward)
         .collect();
     assert_eq!(her0, [-1.0, -1.0, 0.0]);

@@ -156,7 +156,8 @@ pub fn load(run_dir: &Path, run: &RunConfig, seed: u64) -> Result<(FourRooms, Ta
 }
 
 /// `hac eval` for a grid world: `episodes` greedy test episodes of the run in `run_dir`, seeded
-/// by `seed`; calls `on_episode` with each outcome, final state and end goal; returns the success rate.
+/// by `seed`; calls `on_episode` with each outcome, final state and end goal; returns the success
+/// rate.
 pub fn evaluate(
     run_dir: &Path,
     run: &RunConfig,
