@@ -16,6 +16,7 @@ fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunC
         episodes,
         stop_at: None,
         replay_shards: 2,
+        max_actions: None,
         agent,
         tabular: None,
     }

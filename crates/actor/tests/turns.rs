@@ -25,6 +25,7 @@ fn learner(episodes_in_flight: u32) -> Arc<Learner> {
         episodes: 1000,
         stop_at: None,
         replay_shards: 1,
+        max_actions: None,
         agent,
         tabular: None,
     };

@@ -20,7 +20,7 @@ use hac_core::{
 use hac_nn::{LearnerConfig, LevelLearner, NnError};
 use serde::{Deserialize, Serialize};
 
-pub use run_config::{RunConfig, RunConfigError};
+pub use run_config::{MAX_EPISODE_ACTIONS, RunConfig, RunConfigError, check_max_actions};
 
 /// Why an agent could not be built, saved or loaded.
 #[derive(Debug, thiserror::Error)]

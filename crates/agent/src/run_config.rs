@@ -25,6 +25,10 @@ pub struct RunConfig {
     pub stop_at: Option<f32>,
     /// Replay shards per level.
     pub replay_shards: usize,
+    /// Episode budget in primitive actions, replacing the environment's (`hac env describe`
+    /// shows it); training and test episodes alike end after this many actions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_actions: Option<usize>,
     /// HAC hyperparameters (defaults: the environment's, for this number of levels).
     pub agent: AgentConfig,
     /// The tabular learner's own settings; present exactly for the grid worlds. Set under
@@ -106,6 +110,11 @@ impl RunConfig {
         if self.replay_shards == 0 {
             return invalid("replay_shards", "must be at least 1".into());
         }
+        if let Some(n) = self.max_actions {
+            if let Err(message) = check_max_actions(n) {
+                return invalid("max_actions", message);
+            }
+        }
         if let Some(s) = self.stop_at {
             if !(0.0..=1.0).contains(&s) {
                 return invalid("stop_at", format!("{s} (must be a success rate in [0, 1])"));
@@ -146,8 +155,33 @@ impl RunConfig {
         hac_tabular::names().contains(&self.env.as_str())
     }
 
-    /// A fresh instance of the run's environment (continuous tasks and grid worlds alike).
+    /// A fresh instance of the run's environment (continuous tasks and grid worlds alike), with
+    /// the run's episode budget.
     pub fn make_env(&self) -> Result<Box<dyn hac_core::Env>, hac_envs::UnknownEnv> {
-        hac_envs::make(&self.env).or_else(|e| hac_tabular::make(&self.env).map_err(|_| e))
+        let mut env =
+            hac_envs::make(&self.env).or_else(|e| hac_tabular::make(&self.env).map_err(|_| e))?;
+        self.apply_budget(env.as_mut());
+        Ok(env)
+    }
+
+    /// Gives `env` the run's episode budget, if the run sets one (for callers that build the
+    /// environment themselves, like the tabular learner's concrete grid).
+    pub fn apply_budget(&self, env: &mut dyn hac_core::Env) {
+        if let Some(n) = self.max_actions {
+            env.set_max_actions(n);
+        }
+    }
+}
+
+/// The largest episode budget a run may set: far beyond any task's need, and small enough that
+/// step counters and `H^levels` stay in range.
+pub const MAX_EPISODE_ACTIONS: usize = 100_000_000;
+
+/// Checks a run's `max_actions`; the message says what is allowed.
+pub fn check_max_actions(n: usize) -> Result<(), String> {
+    if (1..=MAX_EPISODE_ACTIONS).contains(&n) {
+        Ok(())
+    } else {
+        Err(format!("{n} (must be 1 to {MAX_EPISODE_ACTIONS} actions)"))
     }
 }

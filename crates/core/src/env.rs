@@ -106,6 +106,11 @@ pub struct LevelDims {
 pub trait Env: Send + std::fmt::Debug {
     fn spec(&self) -> &EnvSpec;
 
+    /// Sets the episode budget, `spec().max_actions` (a run's `max_actions` key); where the
+    /// environment derives an H from the budget, [`Env::default_config`] follows it. Callers
+    /// pass at least 1.
+    fn set_max_actions(&mut self, max_actions: usize);
+
     /// The recommended hyperparameters for a hierarchy of `levels` levels (ENVS.md's defaults).
     fn default_config(&self, levels: usize) -> AgentConfig;
 

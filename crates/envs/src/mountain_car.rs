@@ -131,15 +131,20 @@ impl Env for MountainCar {
         &self.spec
     }
 
+    fn set_max_actions(&mut self, max_actions: usize) {
+        self.spec.max_actions = max_actions;
+    }
+
     /// The PyTorch port's preset (ENVS.md; the port's `train.py`, `HAC.py`, `utils.py` and
     /// README) at every level count; where it says nothing, the values are ours and say so.
     fn default_config(&self, levels: usize) -> AgentConfig {
         AgentConfig {
             levels,
             // Port: H = 20 with 2 levels (train.py) and H = 5 with 3 levels (README's results);
-            // we keep 5 deeper down. A flat agent gets the whole budget as its horizon.
+            // we keep 5 deeper down. A flat agent gets the whole budget (the run's
+            // `max_actions` if it sets one) as its horizon.
             horizon: match levels {
-                0 | 1 => MAX_ACTIONS,
+                0 | 1 => self.spec.max_actions,
                 2 => 20,
                 _ => 5,
             },

@@ -172,16 +172,21 @@ impl Env for Pendulum {
         &self.spec
     }
 
+    fn set_max_actions(&mut self, max_actions: usize) {
+        self.spec.max_actions = max_actions;
+    }
+
     /// HAC.md's reference values, with ENVS.md's pendulum specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
         // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
         // H^levels covers the 1000-action budget, i.e. ceil(1000^(1/levels)) (the same rule
-        // reproduces 1000, 32 and 10).
+        // reproduces 1000, 32 and 10). A run's own budget (`max_actions`) moves the flat H and
+        // the deeper ones, not ENVS.md's 32 and 10.
         let horizon = match levels {
-            1 => MAX_ACTIONS,
+            1 => self.spec.max_actions,
             2 => 32,
             3 => 10,
-            k => horizon_covering(MAX_ACTIONS, k),
+            k => horizon_covering(self.spec.max_actions, k),
         };
         // Everything else is the reference's: noise 0.1 and 0.1 of the half range, 200 episodes
         // stored, 50 training episodes between test rounds, no target networks.

@@ -241,15 +241,20 @@ impl Env for Ur5Reacher {
         &self.spec
     }
 
+    fn set_max_actions(&mut self, max_actions: usize) {
+        self.spec.max_actions = max_actions;
+    }
+
     /// HAC.md's reference values, with ENVS.md's UR5 specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
         // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
-        // H^levels covers the 600-action budget (that rule gives 9, not 10, for 3 levels).
+        // H^levels covers the 600-action budget (that rule gives 9, not 10, for 3 levels). A
+        // run's own budget (`max_actions`) moves the flat H and the deeper ones, not 25 and 10.
         let horizon = match levels {
-            1 => MAX_ACTIONS,
+            1 => self.spec.max_actions,
             2 => 25,
             3 => 10,
-            k => horizon_covering(MAX_ACTIONS, k),
+            k => horizon_covering(self.spec.max_actions, k),
         };
         AgentConfig {
             // ENVS.md: primitive 0.1 and subgoal 0.03, as fractions of the half range.

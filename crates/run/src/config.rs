@@ -22,6 +22,7 @@ struct FileConfig {
     episodes: Option<u64>,
     stop_at: Option<f32>,
     replay_shards: Option<usize>,
+    max_actions: Option<usize>,
     agent: Option<toml::Table>,
     tabular: Option<toml::Table>,
     /// The daemons' tables, checked key by key against their flags by [`crate::daemon`]; the
@@ -49,6 +50,8 @@ pub struct Overrides {
     pub episodes: Option<u64>,
     pub stop_at: Option<f32>,
     pub replay_shards: Option<usize>,
+    /// Episode budget replacing the environment's.
+    pub max_actions: Option<usize>,
     /// `KEY=VALUE` agent overrides (`tabular.KEY=VALUE` for the tabular learner), VALUE in TOML
     /// syntax.
     pub set: Vec<String>,
@@ -73,7 +76,15 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         .env
         .or(file_config.env)
         .unwrap_or_else(|| DEFAULT_ENV.to_string());
-    let env = registry::make(&env_name)?;
+    let mut env = registry::make(&env_name)?;
+    let max_actions = flags.max_actions.or(file_config.max_actions);
+    if let Some(n) = max_actions {
+        if let Err(message) = hac_agent::check_max_actions(n) {
+            bail!("invalid value for `max_actions`: {message}");
+        }
+        // Before the defaults: an H derived from the budget follows the run's.
+        env.set_max_actions(n);
+    }
     let levels = flags
         .levels
         .or(file_config.levels)
@@ -154,6 +165,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .replay_shards
             .or(file_config.replay_shards)
             .unwrap_or(1),
+        max_actions,
         agent,
         tabular,
     };
@@ -342,6 +354,63 @@ mod tests {
             .unwrap_err()
         );
         assert!(e.contains("learning_rate"), "{e}");
+    }
+
+    #[test]
+    fn a_run_budget_replaces_the_environments_and_the_h_derived_from_it() {
+        let run = |env: &str, levels, max_actions, file: Option<&Path>| {
+            resolve(
+                file,
+                Overrides {
+                    env: Some(env.into()),
+                    levels: Some(levels),
+                    max_actions,
+                    ..Default::default()
+                },
+            )
+        };
+        // Four-rooms 10 x 10: budget 54 by default (H = 4 covers it with 3 levels); 180 takes
+        // H = 6 (5^3 = 125 < 180 <= 216), and the environment the run makes has the budget.
+        let default = run("four-rooms", 3, None, None).unwrap();
+        assert_eq!((default.max_actions, default.agent.horizon), (None, 4));
+        assert_eq!(default.make_env().unwrap().spec().max_actions, 54);
+        let long = run("four-rooms", 3, Some(180), None).unwrap();
+        assert_eq!((long.max_actions, long.agent.horizon), (Some(180), 6));
+        assert_eq!(long.make_env().unwrap().spec().max_actions, 180);
+        let text = long.to_toml();
+        assert!(text.contains("max_actions = 180"), "{text}");
+        assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), long);
+        assert!(!default.to_toml().contains("max_actions"));
+
+        // Pendulum: the flat agent's H is the budget; ENVS.md's H for 3 levels stays.
+        assert_eq!(
+            run("pendulum", 1, Some(500), None).unwrap().agent.horizon,
+            500
+        );
+        assert_eq!(
+            run("pendulum", 3, Some(500), None).unwrap().agent.horizon,
+            10
+        );
+
+        // From the file; the flag wins over it.
+        let f = write("env = \"ur5-reacher\"\nmax_actions = 300\n");
+        let c = run("ur5-reacher", 3, None, Some(&f.0)).unwrap();
+        assert_eq!(c.max_actions, Some(300));
+        let c = run("ur5-reacher", 3, Some(400), Some(&f.0)).unwrap();
+        assert_eq!(c.max_actions, Some(400));
+
+        // Out of range: refused by name, here and in a run config read back.
+        for bad in [0, hac_agent::MAX_EPISODE_ACTIONS + 1] {
+            let e = format!("{:#}", run("pendulum", 2, Some(bad), None).unwrap_err());
+            assert!(
+                e.contains("max_actions") && e.contains(&bad.to_string()),
+                "{e}"
+            );
+        }
+        let e = RunConfig::from_toml(&text.replace("= 180", "= 0"), "test")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("max_actions"), "{e}");
     }
 
     #[test]

@@ -26,13 +26,14 @@ use clap::{Arg, ArgAction, ArgMatches, Command, Parser};
 pub mod keys;
 
 /// Daemon flags whose file keys live at the top level of the file (they define the run).
-pub const RUN_KEYS: [&str; 6] = [
+pub const RUN_KEYS: [&str; 7] = [
     "env",
     "levels",
     "seed",
     "episodes",
     "stop_at",
     "replay_shards",
+    "max_actions",
 ];
 
 /// Flags that have no key: the file itself, printing it, and agent overrides (the file has

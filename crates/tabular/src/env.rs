@@ -14,7 +14,8 @@ use crate::grid::{Cell, Grid, GridError, MOVES};
 /// - Start: uniform over the room cells (doorways excluded). End goal, in training and in test:
 ///   uniform over the room cells of the three rooms the agent is not in.
 /// - Budget: `max_actions = 3 x` the grid's diameter (the longest shortest path), so that a
-///   detour or two still succeeds while an aimless walk rarely does.
+///   detour or two still succeeds while an aimless walk rarely does. A run can set its own
+///   (`max_actions`); the default H of every level count follows it (the covering rule).
 #[derive(Debug, Clone)]
 pub struct FourRooms {
     grid: Grid,
@@ -118,6 +119,10 @@ pub fn horizon_covering(max_actions: usize, levels: usize) -> usize {
 impl Env for FourRooms {
     fn spec(&self) -> &EnvSpec {
         &self.spec
+    }
+
+    fn set_max_actions(&mut self, max_actions: usize) {
+        self.spec.max_actions = max_actions;
     }
 
     /// HAC.md's values where they apply to a tabular learner (lambda 0.3, 20% random actions,

@@ -35,6 +35,7 @@ fn run_config() -> RunConfig {
         episodes: 1000,
         stop_at: None,
         replay_shards: 2,
+        max_actions: None,
         agent,
         tabular: None,
     }

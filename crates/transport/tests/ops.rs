@@ -41,6 +41,7 @@ fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
         episodes: 1000,
         stop_at: None,
         replay_shards: 2,
+        max_actions: None,
         agent,
         tabular: None,
     };

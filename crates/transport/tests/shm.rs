@@ -30,6 +30,7 @@ fn start_learner(seed: u64) -> Arc<Learner> {
         episodes: 1000,
         stop_at: None,
         replay_shards: 2,
+        max_actions: None,
         agent,
         tabular: None,
     };

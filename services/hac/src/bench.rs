@@ -145,6 +145,7 @@ pub fn bench_run() -> Result<RunConfig> {
         episodes: u64::MAX,
         stop_at: None,
         replay_shards: 4,
+        max_actions: None,
         agent,
         tabular: None,
     })

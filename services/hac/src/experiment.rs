@@ -30,6 +30,7 @@ pub struct Grid {
     pub levels: Vec<usize>,
     pub seeds: u64,
     pub episodes: Option<u64>,
+    pub max_actions: Option<usize>,
     pub jobs: usize,
     pub out: PathBuf,
     pub config: Option<PathBuf>,
@@ -68,6 +69,7 @@ pub fn run(grid: Grid) -> Result<()> {
                     levels: Some(levels),
                     seed: Some(seed),
                     episodes: grid.episodes,
+                    max_actions: grid.max_actions,
                     set: grid.set.clone(),
                     ..Default::default()
                 },

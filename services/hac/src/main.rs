@@ -180,6 +180,9 @@ struct ExperimentArgs {
     /// Training episodes per run [default: as `hac train`].
     #[arg(long)]
     episodes: Option<u64>,
+    /// Episode budget of every run, as for `hac train` [default: the environment's].
+    #[arg(long)]
+    max_actions: Option<usize>,
     /// Runs at a time (each run uses one thread).
     #[arg(long, default_value_t = 2)]
     jobs: usize,
@@ -248,6 +251,10 @@ struct TrainArgs {
     /// Replay shards per level [default: 1].
     #[arg(long, env = "HAC_REPLAY_SHARDS")]
     replay_shards: Option<usize>,
+    /// Episode budget in primitive actions, replacing the environment's (see `hac env
+    /// describe`); an H the environment derives from its budget follows it.
+    #[arg(long, env = "HAC_MAX_ACTIONS")]
+    max_actions: Option<usize>,
     /// TOML config file (top-level keys as these flags, hyperparameters under [agent]; the
     /// daemons' [learner] and [actor] tables are checked and ignored).
     #[arg(long, env = "HAC_CONFIG")]
@@ -338,6 +345,7 @@ fn main() {
                 levels: args.levels,
                 seeds: args.seeds,
                 episodes: args.episodes,
+                max_actions: args.max_actions,
                 jobs: args.jobs,
                 config: args.config,
                 set: args.set,
@@ -412,6 +420,7 @@ fn train(args: TrainArgs) -> Result<()> {
             episodes: args.episodes,
             stop_at: args.stop_at,
             replay_shards: args.replay_shards,
+            max_actions: args.max_actions,
             set: args.set,
         },
     )?;
@@ -470,7 +479,7 @@ fn eval(args: EvalArgs) -> Result<()> {
     let success = if tabular_cmd::handles(&run.env) {
         tabular_cmd::evaluate(&args.run, &run, episodes, args.seed, on_episode)?
     } else {
-        let mut env = hac_envs::make(&run.env)?;
+        let mut env = run.make_env()?;
         let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
             .context("loading the run's weights")?;
         hac_agent::evaluate(

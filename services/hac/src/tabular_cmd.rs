@@ -26,6 +26,13 @@ pub fn handles(env: &str) -> bool {
     crate::registry::is_tabular(env)
 }
 
+/// The run's grid world, with the run's episode budget.
+fn grid_world(run: &RunConfig) -> Result<FourRooms> {
+    let mut env = hac_tabular::four_rooms(&run.env)?;
+    run.apply_budget(&mut env);
+    Ok(env)
+}
+
 /// A tabular learner with its environment and random streams: what the schedule drives.
 struct TabularRun {
     env: FourRooms,
@@ -37,7 +44,7 @@ struct TabularRun {
 impl TabularRun {
     /// Fresh tables for `run`; every random stream derives from `run.seed`.
     fn new(run: &RunConfig) -> Result<Self> {
-        let env = hac_tabular::four_rooms(&run.env)?;
+        let env = grid_world(run)?;
         let mut root = Rng::seed_from(run.seed);
         let tabular = run.tabular.clone().unwrap_or_default();
         let learner = TabularHac::new(&env, run.agent.clone(), &tabular, &mut root)?;
@@ -140,7 +147,7 @@ pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
 /// The trained agent of the run in `run_dir` (its tables read from `weights/`), with a fresh
 /// environment. `seed` seeds the agent's tie-breaking between equal values.
 pub fn load(run_dir: &Path, run: &RunConfig, seed: u64) -> Result<(FourRooms, TabularAgent)> {
-    let env = hac_tabular::four_rooms(&run.env)?;
+    let env = grid_world(run)?;
     let tabular = run.tabular.clone().unwrap_or_default();
     let mut agent = TabularAgent::new(env.grid(), &run.agent, &tabular, Rng::seed_from(seed))?;
     let weights = run_dir::weights_dir(run_dir);

@@ -586,6 +586,91 @@ fn experiment_runs_four_rooms_seeds() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+#[test]
+fn a_run_budget_caps_training_and_evaluation_episodes() {
+    // Four-rooms 10 x 10 with 5 actions per episode instead of 54: a training episode never
+    // takes more, evaluation of the saved run neither, and the default H follows (3^2 >= 5).
+    let out = scratch("four-rooms-budget");
+    let out_s = out.to_str().unwrap();
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--levels",
+        "2",
+        "--episodes",
+        "100",
+        "--max-actions",
+        "5",
+        "--out",
+        out_s,
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(
+        config.contains("max_actions = 5") && config.contains("horizon = 3"),
+        "{config}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let steps = summary["env_steps"].as_u64().unwrap();
+    assert!(steps <= 100 * 5, "{steps} training steps in 100 episodes");
+
+    let o = hac(&["eval", "--run", out_s, "--episodes", "30", "--per-episode"]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let steps: Vec<u64> = text(&o.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| v["steps"].as_u64())
+        .collect();
+    assert_eq!(steps.len(), 30, "{}", text(&o.stdout));
+    // Start and goal lie in different rooms, more than 5 moves apart for most draws.
+    assert!(
+        steps.iter().all(|&s| s <= 5) && steps.contains(&5),
+        "{steps:?}"
+    );
+
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "four-rooms",
+        "--levels",
+        "1",
+        "--seeds",
+        "1",
+        "--episodes",
+        "50",
+        "--max-actions",
+        "7",
+        "--out",
+        &format!("{out_s}-experiment"),
+    ]);
+    assert!(o.status.success(), "experiment failed: {}", text(&o.stderr));
+    let experiment = PathBuf::from(format!("{out_s}-experiment"));
+    let config =
+        std::fs::read_to_string(experiment.join("four-rooms-1l-seed0/config.toml")).unwrap();
+    assert!(
+        config.contains("max_actions = 7") && config.contains("horizon = 7"),
+        "{config}"
+    );
+
+    let o = hac(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--max-actions",
+        "0",
+        "--print-config",
+    ]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("max_actions"),
+        "{}",
+        text(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&experiment);
+}
+
 /// Checks the GIF signature and counts the frames with a decoder.
 fn gif_frames(path: &Path) -> usize {
     let bytes = std::fs::read(path).unwrap();

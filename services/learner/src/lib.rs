@@ -69,6 +69,10 @@ pub struct LearnerArgs {
     /// Replay shards per level [default: 1].
     #[arg(long, env = "HAC_REPLAY_SHARDS")]
     pub replay_shards: Option<usize>,
+    /// Episode budget in primitive actions, replacing the environment's (see `hac env
+    /// describe`); actors get it with the run's configuration.
+    #[arg(long, env = "HAC_MAX_ACTIONS")]
+    pub max_actions: Option<usize>,
     #[command(flatten)]
     pub config: ConfigArgs,
     /// Override one agent hyperparameter, VALUE in TOML syntax (repeatable), e.g.
@@ -205,6 +209,7 @@ impl LearnerArgs {
                 episodes: self.episodes,
                 stop_at: self.stop_at,
                 replay_shards: self.replay_shards,
+                max_actions: self.max_actions,
                 set: self.set.clone(),
             },
         )

@@ -48,6 +48,10 @@ impl Env for PointEnv {
         &self.spec
     }
 
+    fn set_max_actions(&mut self, max_actions: usize) {
+        self.spec.max_actions = max_actions;
+    }
+
     fn default_config(&self, levels: usize) -> AgentConfig {
         agent_config(levels, 5)
     }

@@ -15,6 +15,7 @@ pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
         episodes,
         stop_at: None,
         replay_shards,
+        max_actions: None,
         agent,
         tabular: None,
     }

@@ -123,7 +123,7 @@ fn load_policy(
         let (env, agent) = tabular_cmd::load(run_dir, run, seed)?;
         return Ok((Box::new(env), Box::new(agent)));
     }
-    let env = hac_envs::make(&run.env)?;
+    let env = run.make_env()?;
     let agent = Agent::load(&run_dir::weights_dir(run_dir), env.spec(), &run.agent)
         .context("loading the run's weights")?;
     Ok((env, Box::new(agent)))
