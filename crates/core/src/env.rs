@@ -93,6 +93,17 @@ impl EnvSpec {
     }
 }
 
+/// The smallest H with `H^levels >= max_actions`, i.e. `ceil(max_actions^(1/levels))` computed
+/// exactly: the horizon at which the top level's H attempts can just cover the episode budget
+/// (the rule that gives the paper's pendulum H = 1000 / 32 / 10). Environments use it for the
+/// level counts ENVS.md gives no H for, the grid worlds for all.
+pub fn horizon_covering(max_actions: usize, levels: usize) -> usize {
+    let levels = u32::try_from(levels.max(1)).unwrap_or(u32::MAX);
+    (1..max_actions)
+        .find(|h| h.checked_pow(levels).is_none_or(|p| p >= max_actions))
+        .unwrap_or(max_actions)
+}
+
 /// Sizes of one level's inputs and outputs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct LevelDims {
@@ -169,4 +180,22 @@ pub enum StateError {
     },
     #[error("{env} cannot be set to a physical state")]
     Unsupported { env: &'static str },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn horizon_covering_is_exact_ceil_root() {
+        assert_eq!(horizon_covering(1000, 1), 1000);
+        assert_eq!(horizon_covering(1000, 2), 32);
+        assert_eq!(horizon_covering(1000, 3), 10);
+        assert_eq!(horizon_covering(1000, 4), 6);
+        assert_eq!(horizon_covering(1000, 5), 4);
+        assert_eq!(horizon_covering(1000, 8), 3);
+        assert_eq!(horizon_covering(1000, 0), 1000);
+        assert_eq!(horizon_covering(60, 2), 8);
+        assert_eq!(horizon_covering(60, 3), 4);
+    }
 }

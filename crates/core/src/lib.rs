@@ -17,7 +17,7 @@ pub mod transition;
 
 pub use bounds::{Bounds, within, within_goal};
 pub use config::{AgentConfig, ConfigError, Noise};
-pub use env::{Env, EnvSpec, LevelDims, Mode, StateError};
+pub use env::{Env, EnvSpec, LevelDims, Mode, StateError, horizon_covering};
 pub use rng::Rng;
 pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
 pub use transition::{

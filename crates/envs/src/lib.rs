@@ -93,16 +93,6 @@ fn wrap_angle(a: f64) -> f64 {
     if r > PI { r - TAU } else { r }
 }
 
-/// The smallest H with `H^levels >= max_actions`, i.e. `ceil(max_actions^(1/levels))` computed
-/// exactly: the horizon at which the top level's H attempts can just cover the episode budget.
-/// Environments use it for level counts ENVS.md gives no H for.
-fn horizon_covering(max_actions: usize, levels: usize) -> usize {
-    let levels = u32::try_from(levels.max(1)).unwrap_or(u32::MAX);
-    (1..max_actions)
-        .find(|h| h.checked_pow(levels).is_none_or(|p| p >= max_actions))
-        .unwrap_or(max_actions)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -151,17 +141,6 @@ mod tests {
             let w = wrap_angle(f64::from(i) * 0.037);
             assert!(w > -PI && w <= PI, "{w}");
         }
-    }
-
-    #[test]
-    fn horizon_covering_is_exact_ceil_root() {
-        assert_eq!(horizon_covering(1000, 1), 1000);
-        assert_eq!(horizon_covering(1000, 2), 32);
-        assert_eq!(horizon_covering(1000, 3), 10);
-        assert_eq!(horizon_covering(1000, 4), 6);
-        assert_eq!(horizon_covering(1000, 5), 4);
-        assert_eq!(horizon_covering(1000, 8), 3);
-        assert_eq!(horizon_covering(1000, 0), 1000);
     }
 
     #[test]

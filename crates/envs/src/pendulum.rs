@@ -19,9 +19,9 @@
 
 use std::f32::consts::PI as PI_F32;
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, horizon_covering};
 
-use crate::{StateError, check_physical_state, horizon_covering, wrap_angle};
+use crate::{StateError, check_physical_state, wrap_angle};
 
 /// Distance from the hinge to the sphere's centre, m.
 pub const POLE_LENGTH: f64 = 0.5;

@@ -40,12 +40,12 @@ pub mod arm;
 
 use std::f32::consts::{FRAC_PI_4, PI as PI_F32, TAU as TAU_F32};
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng, horizon_covering};
 use nalgebra::Vector3;
 
 pub use arm::{JOINTS, Pose, Ur5Arm, WRIST_IN_FOREARM};
 
-use crate::{StateError, check_physical_state, horizon_covering, wrap_angle};
+use crate::{StateError, check_physical_state, wrap_angle};
 
 /// Integration timestep, s.
 pub const TIMESTEP: f64 = 0.002;

@@ -1,7 +1,7 @@
 //! The four-rooms task as a [`hac_core::Env`]: cells encoded as f32 `[row, col]`, the primitive
 //! action as one f32 index.
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, StateError};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, StateError, horizon_covering};
 
 use crate::grid::{Cell, Grid, GridError, MOVES};
 
@@ -105,15 +105,6 @@ impl FourRooms {
         }
         unreachable!("k is below the total number of cells")
     }
-}
-
-/// The smallest H with `H^levels >= max_actions`: a training episode of the full hierarchy can
-/// then use the whole budget (the rule that gives the paper's pendulum H = 1000 / 32 / 10).
-pub fn horizon_covering(max_actions: usize, levels: usize) -> usize {
-    let levels = u32::try_from(levels.max(1)).unwrap_or(u32::MAX);
-    (1..max_actions)
-        .find(|h| h.checked_pow(levels).is_none_or(|p| p >= max_actions))
-        .unwrap_or(max_actions)
 }
 
 impl Env for FourRooms {
@@ -292,14 +283,6 @@ mod tests {
             assert!(env.set_physical_state(&bad).is_err(), "{bad:?}");
         }
         assert_eq!(env.position(), Cell::new(0, 0));
-    }
-
-    #[test]
-    fn horizon_covers_the_budget() {
-        assert_eq!(horizon_covering(60, 1), 60);
-        assert_eq!(horizon_covering(60, 2), 8);
-        assert_eq!(horizon_covering(60, 3), 4);
-        assert_eq!(horizon_covering(1000, 3), 10);
     }
 
     #[test]
