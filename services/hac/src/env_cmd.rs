@@ -17,9 +17,15 @@ pub fn list() -> Result<()> {
     Ok(())
 }
 
-/// `hac env describe NAME`: spaces, bounds, thresholds and defaults per level count.
-pub fn describe(name: &str, json_out: bool) -> Result<()> {
-    let env = registry::make(name)?;
+/// `hac env describe NAME`: spaces, bounds, thresholds and defaults per level count, for the
+/// environment's own episode budget or `max_actions`.
+pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Result<()> {
+    let mut env = registry::make(name)?;
+    if let Some(n) = max_actions {
+        hac_agent::check_max_actions(n)
+            .map_err(|message| anyhow::anyhow!("invalid value for `--max-actions`: {message}"))?;
+        env.set_max_actions(n);
+    }
     let spec = env.spec();
     let defaults: Vec<_> = (1..=3).map(|k| env.default_config(k)).collect();
     let tabular = registry::is_tabular(name).then(hac_tabular::TabularConfig::default);
@@ -72,7 +78,15 @@ pub fn describe(name: &str, json_out: bool) -> Result<()> {
             angle_dims(&spec.subgoal_angles)
         );
     }
-    println!("  max primitive actions     {}", spec.max_actions);
+    println!(
+        "  max primitive actions     {}{}",
+        spec.max_actions,
+        if max_actions.is_some() {
+            " (as given; runs set it with --max-actions)"
+        } else {
+            " (a run's --max-actions / max_actions replaces it)"
+        }
+    );
     println!(
         "  physics steps per action  {}",
         spec.physics_steps_per_action

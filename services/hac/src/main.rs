@@ -211,6 +211,10 @@ enum EnvCommand {
         /// Print as JSON.
         #[arg(long)]
         json: bool,
+        /// Describe it with this episode budget, as a run with `--max-actions` has it (the
+        /// defaults derived from the budget follow).
+        #[arg(long)]
+        max_actions: Option<usize>,
     },
     /// Step an environment by hand: reads one JSON action array per stdin line, prints one JSON
     /// object per state (`{"step": n, "state": [...]}`), starting with the initial state.
@@ -396,7 +400,11 @@ fn main() {
         }),
         Command::Health(args) => health::run(&args),
         Command::Env(EnvCommand::List) => env_cmd::list(),
-        Command::Env(EnvCommand::Describe { name, json }) => env_cmd::describe(&name, json),
+        Command::Env(EnvCommand::Describe {
+            name,
+            json,
+            max_actions,
+        }) => env_cmd::describe(&name, json, max_actions),
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
             env_cmd::rollout(&env, seed, state.as_deref())
         }

@@ -247,6 +247,26 @@ fn env_list_and_describe() {
         "3 x the 25x25 grid's diameter of 48"
     );
     assert_eq!(d["tabular"]["initial_q"], "pessimistic");
+    // Another budget: H of every level count follows it (12 / 6 for 144; 22 / 8 for 480).
+    assert_eq!(d["defaults"][1]["horizon"], 12);
+    let o = hac(&[
+        "env",
+        "describe",
+        "four-rooms-25",
+        "--json",
+        "--max-actions",
+        "480",
+    ]);
+    let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
+    assert_eq!(d["spec"]["max_actions"], 480);
+    assert_eq!(d["defaults"][1]["horizon"], 22);
+    assert_eq!(d["defaults"][2]["horizon"], 8);
+    let o = hac(&["env", "describe", "pendulum", "--max-actions", "0"]);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("--max-actions"),
+        "{}",
+        text(&o.stderr)
+    );
     let o = hac(&["env", "describe", "four-rooms"]);
     assert!(text(&o.stdout).contains("tabular Q-learning"));
     // The UR5's joint angles are compared along the circle, its joint speeds are not.
