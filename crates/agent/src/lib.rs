@@ -20,7 +20,9 @@ use hac_core::{
 use hac_nn::{LearnerConfig, LevelLearner, NnError};
 use serde::{Deserialize, Serialize};
 
-pub use run_config::{MAX_EPISODE_ACTIONS, RunConfig, RunConfigError, check_max_actions};
+pub use run_config::{
+    MAX_EPISODE_ACTIONS, RunConfig, RunConfigError, check_max_actions, set_checked_budget,
+};
 
 /// Why an agent could not be built, saved or loaded.
 #[derive(Debug, thiserror::Error)]

@@ -185,3 +185,11 @@ pub fn check_max_actions(n: usize) -> Result<(), String> {
         Err(format!("{n} (must be 1 to {MAX_EPISODE_ACTIONS} actions)"))
     }
 }
+
+/// Gives `env` the episode budget `n` once [`check_max_actions`] accepts it (its message
+/// otherwise), for callers that set a budget before a run config exists.
+pub fn set_checked_budget(env: &mut dyn hac_core::Env, n: usize) -> Result<(), String> {
+    check_max_actions(n)?;
+    env.set_max_actions(n);
+    Ok(())
+}

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use hac_core::AgentConfig;
 use hac_tabular::TabularConfig;
 use serde::Deserialize;
@@ -79,11 +79,9 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
     let mut env = registry::make(&env_name)?;
     let max_actions = flags.max_actions.or(file_config.max_actions);
     if let Some(n) = max_actions {
-        if let Err(message) = hac_agent::check_max_actions(n) {
-            bail!("invalid value for `max_actions`: {message}");
-        }
         // Before the defaults: an H derived from the budget follows the run's.
-        env.set_max_actions(n);
+        hac_agent::set_checked_budget(env.as_mut(), n)
+            .map_err(|message| anyhow!("invalid value for `max_actions`: {message}"))?;
     }
     let levels = flags
         .levels

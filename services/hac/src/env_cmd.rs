@@ -22,9 +22,8 @@ pub fn list() -> Result<()> {
 pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Result<()> {
     let mut env = registry::make(name)?;
     if let Some(n) = max_actions {
-        hac_agent::check_max_actions(n)
+        hac_agent::set_checked_budget(env.as_mut(), n)
             .map_err(|message| anyhow::anyhow!("invalid value for `--max-actions`: {message}"))?;
-        env.set_max_actions(n);
     }
     let spec = env.spec();
     let defaults: Vec<_> = (1..=3).map(|k| env.default_config(k)).collect();
