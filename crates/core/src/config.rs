@@ -79,6 +79,10 @@ pub struct AgentConfig {
     /// bounds where a saturated critic gives no gradient.
     #[serde(default)]
     pub actor_preactivation_l2: f32,
+    /// Compute the critic's slope `-H s (1 - s)` from its pre-sigmoid output instead of from
+    /// `Q` as the reference does (`false`), where it rounds to exactly 0 once `Q` reads `-H`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub exact_critic_slope: bool,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).
     pub episodes_to_store: usize,
     /// Upper bound on any level's replay capacity.
@@ -112,6 +116,7 @@ impl AgentConfig {
             updates_per_episode: 40,
             target_tau: None,
             actor_preactivation_l2: 0.0,
+            exact_critic_slope: false,
             episodes_to_store: 200,
             replay_capacity_max: 10_000_000,
             exploration_episodes: 50,

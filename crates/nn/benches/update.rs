@@ -25,6 +25,7 @@ fn config(action: usize) -> LearnerConfig {
         critic_lr: 1e-3,
         target_tau: None,
         actor_preactivation_l2: 0.0,
+        exact_critic_slope: false,
     }
 }
 

@@ -97,12 +97,30 @@ impl Critic {
         copy_rows(ws.input_mut(), rows, start, actions, self.dims.action);
     }
 
-    /// Forward pass on a batch; leaves `Q` in `ws.output()`.
-    pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace) {
+    /// Forward pass on a batch; leaves `Q` in `ws.output()` and `dQ/dx` for
+    /// [`Critic::backward_batch`] in `ws`.
+    ///
+    /// The slope is `-H s (1 - s)` with `s = sigmoid(x + q_offset)`. The reference computes it
+    /// from the output, as `Q (1 + Q / H)` (TensorFlow's `y (1 - y)`); in f32 `s` rounds to 1
+    /// from `x + q_offset` of about 17, and there the slope is exactly zero: a critic that reads
+    /// `-H` on a sample cannot learn that sample again, however wrong, and gives an actor there
+    /// no gradient. With `exact_slope` it is computed from `x` (see [`sigmoid_and_complement`]),
+    /// exact until `exp` underflows near `x + q_offset = 100`.
+    pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace, exact_slope: bool) {
         self.mlp.forward(ws);
         let (h, off) = (self.horizon, self.q_offset);
-        for v in ws.output_mut() {
-            *v = -h / (1.0 + (-(*v + off)).exp());
+        let inv_h = 1.0 / h;
+        let (out, slope) = ws.output_and_slope_mut();
+        for (v, d) in out.iter_mut().zip(slope) {
+            if exact_slope {
+                let (s, one_minus_s) = sigmoid_and_complement(*v + off);
+                *v = -h * s;
+                *d = -h * s * one_minus_s;
+            } else {
+                let q = -h / (1.0 + (-(*v + off)).exp());
+                *v = q;
+                *d = q * (1.0 + q * inv_h);
+            }
         }
     }
 
@@ -115,11 +133,9 @@ impl Critic {
         grads: Option<&mut MlpGrads>,
         action_grad: bool,
     ) {
-        // dQ/dx = -H s (1 - s) with s = -Q / H, i.e. Q (1 + Q / H).
-        let inv_h = 1.0 / self.horizon;
-        let (q, g) = ws.output_and_grad_mut();
-        for (g, q) in g.iter_mut().zip(q) {
-            *g *= q * (1.0 + q * inv_h);
+        let (g, slope) = ws.grad_and_slope_mut();
+        for (g, d) in g.iter_mut().zip(slope) {
+            *g *= d;
         }
         let rows = if action_grad {
             self.action_rows()
@@ -172,6 +188,19 @@ impl Critic {
     }
 }
 
+/// `(sigmoid(x), 1 - sigmoid(x))`, each to full relative precision: `1 - s` stays the true, tiny,
+/// value where `s` rounds to 1, and so does the slope made from it, which Adam's step scaling can
+/// still act on.
+fn sigmoid_and_complement(x: f32) -> (f32, f32) {
+    if x >= 0.0 {
+        let e = (-x).exp();
+        (1.0 / (1.0 + e), e / (1.0 + e))
+    } else {
+        let e = x.exp();
+        (e / (1.0 + e), 1.0 / (1.0 + e))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -199,6 +228,11 @@ mod tests {
 
     #[test]
     fn backward_matches_finite_differences_for_parameters_and_action() {
+        backward_matches_finite_differences(false);
+        backward_matches_finite_differences(true);
+    }
+
+    fn backward_matches_finite_differences(exact_slope: bool) {
         let mut rng = Rng::seed_from(21);
         let horizon = 10.0;
         let mut critic = Critic::new(DIMS, horizon, &[8, 6], &mut rng);
@@ -215,7 +249,7 @@ mod tests {
         let mut ws = MlpWorkspace::new(critic.mlp(), n);
         let x = random_input(&critic, &mut ws, &mut rng, 1.0);
         let r = uniform_vec(&mut rng, n, 1.0);
-        critic.forward_batch(&mut ws);
+        critic.forward_batch(&mut ws, exact_slope);
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(critic.mlp());
         critic.backward_batch(&mut ws, Some(&mut grads), true);
@@ -246,6 +280,64 @@ mod tests {
     }
 
     #[test]
+    fn the_gradient_survives_where_the_output_rounds_to_minus_h() {
+        let mut rng = Rng::seed_from(23);
+        let horizon = 20.0;
+        let mut critic = Critic::new(DIMS, horizon, &[8, 6], &mut rng);
+        // An output bias that puts x + q_offset at about 25 (30 and 40 below): sigmoid rounds to
+        // 1 in f32, as in a critic that rates everything at -H.
+        let n = 16;
+        let mut ws = MlpWorkspace::new(critic.mlp(), n);
+        let x = random_input(&critic, &mut ws, &mut rng, 1.0);
+        let q_offset = critic.q_offset();
+        for lift in [25.0, 30.0, 40.0] {
+            if let Some(bias) = critic.mlp_mut().tensors_mut().last() {
+                bias[0] = lift - q_offset;
+            }
+            ws.input_mut().copy_from_slice(&x);
+            critic.forward_batch(&mut ws, true);
+            assert!(
+                ws.output().iter().all(|&q| q == -horizon),
+                "{:?}",
+                ws.output()
+            );
+            ws.output_grad_mut().fill(1.0);
+            let mut grads = MlpGrads::new(critic.mlp());
+            critic.backward_batch(&mut ws, Some(&mut grads), true);
+
+            // The output bias's gradient is the sum of dQ/dx = -H s (1 - s), here in f64 as
+            // -H e / (1 + e)^2 with e = exp(-x) (1 - s itself rounds to 0 in f64 from x = 37).
+            let z = reference_forward(
+                &critic.mlp().sizes(),
+                &params_f64(critic.mlp()),
+                &widen(&x),
+                n,
+            );
+            let want: f64 = z
+                .iter()
+                .map(|z| {
+                    let e = (-(z + f64::from(q_offset))).exp();
+                    -f64::from(horizon) * e / ((1.0 + e) * (1.0 + e))
+                })
+                .sum();
+            let got = f64::from(grads.tensors().last().unwrap()[0]);
+            assert!(want < 0.0);
+            assert!(
+                ((got - want) / want).abs() < 1e-4,
+                "x + q_offset near {lift}: bias gradient {got}, want {want}"
+            );
+            // The action gradient is there too: the actor is not stuck either.
+            assert!(ws.input_grad().iter().any(|&g| g != 0.0));
+
+            // The reference's slope, from Q, is exactly zero here.
+            critic.forward_batch(&mut ws, false);
+            ws.output_grad_mut().fill(1.0);
+            critic.backward_batch(&mut ws, Some(&mut grads), true);
+            assert_eq!(grads.tensors().last().unwrap()[0], 0.0);
+        }
+    }
+
+    #[test]
     fn starts_near_the_optimistic_value_and_stays_in_range() {
         let mut rng = Rng::seed_from(22);
         let n = 256;
@@ -254,7 +346,7 @@ mod tests {
             assert!((critic.q_offset() + (horizon / INITIAL_Q - 1.0).ln()).abs() < 1e-5);
             let mut ws = MlpWorkspace::new(critic.mlp(), n);
             random_input(&critic, &mut ws, &mut rng, 1.0);
-            critic.forward_batch(&mut ws);
+            critic.forward_batch(&mut ws, false);
             for &q in ws.output() {
                 assert!((q + INITIAL_Q).abs() < 0.01, "H {horizon}: initial Q {q}");
             }
@@ -264,7 +356,7 @@ mod tests {
                 t.iter_mut().for_each(|v| *v *= 30.0);
             }
             random_input(&critic, &mut ws, &mut rng, 100.0);
-            critic.forward_batch(&mut ws);
+            critic.forward_batch(&mut ws, false);
             let q = ws.output();
             assert!(
                 q.iter().all(|q| (-horizon..=0.0).contains(q)),

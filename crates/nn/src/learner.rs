@@ -32,6 +32,9 @@ pub struct LearnerConfig {
     /// Weight of the mean square of the actor's pre-`tanh` outputs in its loss; 0 (HAC.md's
     /// loss) leaves it out.
     pub actor_preactivation_l2: f32,
+    /// The critic's slope from its pre-sigmoid output (see [`Critic`]); `false` is the
+    /// reference's rounding.
+    pub exact_critic_slope: bool,
 }
 
 impl LearnerConfig {
@@ -47,6 +50,7 @@ impl LearnerConfig {
             critic_lr: agent.critic_lr,
             target_tau: agent.target_tau,
             actor_preactivation_l2: agent.actor_preactivation_l2,
+            exact_critic_slope: agent.exact_critic_slope,
         }
     }
 
@@ -233,6 +237,7 @@ impl LevelLearner {
 
     /// Sets `self.y` to the clipped bootstrap targets; returns their mean.
     fn set_targets(&mut self, batch: &Fields<'_>) -> f32 {
+        let exact = self.config.exact_critic_slope;
         let (actor, critic) = match &self.targets {
             Some(t) => (&t.actor, &t.critic),
             None => (&self.actor, &self.critic),
@@ -242,7 +247,7 @@ impl LevelLearner {
         critic.fill_state_goal(&mut self.critic_ws, batch.next_states, batch.goals);
         let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
         actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
-        critic.forward_batch(&mut self.critic_ws);
+        critic.forward_batch(&mut self.critic_ws, exact);
 
         let (h, gamma) = (self.config.horizon, self.config.gamma);
         let mut sum = 0.0;
@@ -262,10 +267,11 @@ impl LevelLearner {
     /// One Adam step on the critic's mean squared error to `self.y`; returns that error and the
     /// mean `Q`, both from before the step.
     fn critic_step(&mut self, batch: &Fields<'_>) -> (f32, f32) {
+        let exact = self.config.exact_critic_slope;
         let critic = &mut self.critic;
         critic.fill_state_goal(&mut self.critic_ws, batch.states, batch.goals);
         critic.fill_actions(&mut self.critic_ws, batch.actions);
-        critic.forward_batch(&mut self.critic_ws);
+        critic.forward_batch(&mut self.critic_ws, exact);
         let inv_n = 1.0 / batch.len as f32;
         let (mut sq_err_sum, mut q_sum) = (0.0, 0.0);
         let (q, dq) = self.critic_ws.output_and_grad_mut();
@@ -287,11 +293,13 @@ impl LevelLearner {
     ///
     /// With `actor_preactivation_l2 = c > 0` the loss also holds `c` times the mean square of
     /// the actor's pre-`tanh` outputs (not part of the returned value). Where the critic is flat
-    /// (its `-H sigmoid` rounded to `-H`) and the actor sits at a corner of its bounds, the first
-    /// term's gradient is exactly zero and only this one moves the actor.
+    /// (its pre-sigmoid output beyond about 100, where even its exact slope underflows to 0) and
+    /// the actor sits at a corner of its bounds, the first term's gradient is exactly zero and
+    /// only this one moves the actor.
     ///
     /// Runs after [`LevelLearner::critic_step`], whose state and goal rows it reuses.
     fn actor_step(&mut self, batch: &Fields<'_>) -> f32 {
+        let exact = self.config.exact_critic_slope;
         let (actor, critic) = (&mut self.actor, &self.critic);
         let c = self.config.actor_preactivation_l2;
         actor.fill_input(&mut self.actor_ws, batch.states, batch.goals);
@@ -302,7 +310,7 @@ impl LevelLearner {
         }
         let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
         actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
-        critic.forward_batch(&mut self.critic_ws);
+        critic.forward_batch(&mut self.critic_ws, exact);
         let inv_n = 1.0 / batch.len as f32;
         let mut q_sum = 0.0;
         let (q, dq) = self.critic_ws.output_and_grad_mut();
@@ -426,6 +434,7 @@ mod tests {
             critic_lr: 1e-3,
             target_tau,
             actor_preactivation_l2: 0.0,
+            exact_critic_slope: false,
         }
     }
 
@@ -486,7 +495,7 @@ mod tests {
             rows,
             critic.action_rows().start,
         );
-        critic.forward_batch(&mut critic_ws);
+        critic.forward_batch(&mut critic_ws, false);
         critic_ws.output().iter().sum::<f32>() / batch.len as f32
     }
 
@@ -549,8 +558,9 @@ mod tests {
     }
 
     /// A learner whose actor outputs sit at the corner `(2, 1)` of its bounds with pre-activations
-    /// of about 40 (tanh rounds to 1), and whose critic reads exactly `-H` everywhere (its output
-    /// bias far up the sigmoid): the failure HAC.md's loss cannot leave.
+    /// of about 40 (tanh rounds to 1), and whose critic reads exactly `-H` everywhere with a slope
+    /// that underflows to 0 (its output bias of 1000 far up the sigmoid): the failure HAC.md's
+    /// loss cannot leave.
     fn stuck_at_a_corner(actor_preactivation_l2: f32) -> LevelLearner {
         let mut rng = Rng::seed_from(35);
         let mut learner = LevelLearner::new(

@@ -391,6 +391,10 @@ pub struct MlpWorkspace {
     /// `acts[0]` is the input; `acts[l + 1]` the output of layer `l` (after ReLU when hidden).
     acts: Vec<Vec<f32>>,
     out_grad: Vec<f32>,
+    /// The derivative of an output activation applied in place after [`Mlp::forward`], for an
+    /// activation whose derivative cannot be recovered accurately from its value (see
+    /// [`MlpWorkspace::output_and_slope_mut`]).
+    out_slope: Vec<f32>,
     /// Gradients with respect to hidden pre-activations, alternating between layers.
     deltas: [Vec<f32>; 2],
     in_grad: Vec<f32>,
@@ -409,6 +413,7 @@ impl MlpWorkspace {
             sizes,
             batch: 0,
             out_grad: Vec::new(),
+            out_slope: Vec::new(),
             deltas: [Vec::new(), Vec::new()],
             in_grad: Vec::new(),
             in_grad_rows: 0,
@@ -432,8 +437,9 @@ impl MlpWorkspace {
         for d in &mut self.deltas {
             d.resize(widest_hidden * batch, 0.0);
         }
-        self.out_grad
-            .resize(self.sizes[self.sizes.len() - 1] * batch, 0.0);
+        let outputs = self.sizes[self.sizes.len() - 1] * batch;
+        self.out_grad.resize(outputs, 0.0);
+        self.out_slope.resize(outputs, 0.0);
         self.in_grad.resize(self.sizes[0] * batch, 0.0);
     }
 
@@ -478,6 +484,18 @@ impl MlpWorkspace {
     /// derivative is a function of their value.
     pub(crate) fn output_and_grad_mut(&mut self) -> (&[f32], &mut [f32]) {
         (&self.acts[self.acts.len() - 1], &mut self.out_grad)
+    }
+
+    /// The output (to transform in place) with room for the transform's derivative at each
+    /// output, which a later backward pass reads with [`MlpWorkspace::grad_and_slope_mut`].
+    pub(crate) fn output_and_slope_mut(&mut self) -> (&mut [f32], &mut [f32]) {
+        let last = self.acts.len() - 1;
+        (&mut self.acts[last], &mut self.out_slope)
+    }
+
+    /// The output gradient (written) with the derivatives kept by the forward pass (read).
+    pub(crate) fn grad_and_slope_mut(&mut self) -> (&mut [f32], &[f32]) {
+        (&mut self.out_grad, &self.out_slope)
     }
 
     /// The gradient with respect to the input rows asked of the last [`Mlp::backward`],
