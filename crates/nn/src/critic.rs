@@ -109,14 +109,17 @@ impl Critic {
     pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace, exact_slope: bool) {
         self.mlp.forward(ws);
         let (h, off) = (self.horizon, self.q_offset);
-        let inv_h = 1.0 / h;
         let (out, slope) = ws.output_and_slope_mut();
-        for (v, d) in out.iter_mut().zip(slope) {
-            if exact_slope {
+        let pairs = out.iter_mut().zip(slope);
+        if exact_slope {
+            for (v, d) in pairs {
                 let (s, one_minus_s) = sigmoid_and_complement(*v + off);
                 *v = -h * s;
                 *d = -h * s * one_minus_s;
-            } else {
+            }
+        } else {
+            let inv_h = 1.0 / h;
+            for (v, d) in pairs {
                 let q = -h / (1.0 + (-(*v + off)).exp());
                 *v = q;
                 *d = q * (1.0 + q * inv_h);
