@@ -16,7 +16,7 @@
 
 use std::sync::Arc;
 
-use hac_core::{AgentConfig, ConfigError, Policy, Rng, Transition, TransitionSink};
+use hac_core::{AgentConfig, ConfigError, Policy, Rng, Transition, TransitionKind, TransitionSink};
 use serde::{Deserialize, Serialize};
 
 use crate::grid::{Grid, GridError, MOVES};
@@ -54,6 +54,14 @@ pub struct TabularConfig {
     /// Transitions each level keeps for replay (the oldest are overwritten).
     #[serde(default = "default_replay_capacity")]
     pub replay_capacity: usize,
+    /// Hindsight with every goal ("all-goals updating"): a hindsight action transition updates
+    /// the entry of its `(state, action)` for every goal cell, with reward and terminal
+    /// recomputed against that goal, instead of for its own goal only. The move (or achieved
+    /// subgoal) and where it led do not depend on the goal, so every such update is valid
+    /// experience; HER's copies, which relabel the same transitions with a few achieved goals,
+    /// are then contained in it and skipped. Penalty transitions keep their one goal.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub all_goals: bool,
 }
 
 fn default_replay_capacity() -> usize {
@@ -72,6 +80,7 @@ impl Default for TabularConfig {
             max_table_entries: 1 << 25,
             replay_updates: 0,
             replay_capacity: default_replay_capacity(),
+            all_goals: false,
         }
     }
 }
@@ -290,6 +299,8 @@ pub struct TabularAgent {
     horizon: f32,
     gamma: f32,
     learning_rate: f32,
+    /// [`TabularConfig::all_goals`].
+    all_goals: bool,
     /// Breaks ties between equal values (untried actions all start at 0).
     rng: Rng,
     updates: u64,
@@ -358,6 +369,7 @@ impl TabularAgent {
             horizon: config.horizon as f32,
             gamma: config.gamma,
             learning_rate: tabular.learning_rate,
+            all_goals: tabular.all_goals,
             rng,
             updates: 0,
             skipped: 0,
@@ -445,8 +457,15 @@ impl TabularAgent {
         (s * self.shared.grid.num_cells() + g) * self.shared.levels[level].slots()
     }
 
-    /// Applies one Q-learning update; `false` if the transition has no place in the tables.
+    /// Applies one Q-learning update (with [`TabularConfig::all_goals`], one per goal cell);
+    /// `false` if the transition has no place in the tables.
     pub fn update(&mut self, level: usize, t: &Transition<'_>) -> bool {
+        let all_goals = self.all_goals && t.kind != TransitionKind::SubgoalPenalty;
+        if all_goals && t.kind == TransitionKind::HindsightGoal {
+            // Its state, action and next state are those of a hindsight action transition of
+            // the same level, which updates them for every goal.
+            return true;
+        }
         let (grid, space) = (&self.shared.grid, &self.shared.levels[level]);
         let indices = grid.index_of_point(t.state).and_then(|s| {
             let g = grid.index_of_point(t.goal)?;
@@ -457,8 +476,38 @@ impl TabularAgent {
             self.skipped += 1;
             return false;
         };
+        if all_goals {
+            for goal in 0..grid.num_cells() {
+                // Reached means standing on the goal cell (the grid's threshold is half a cell).
+                let (reward, terminal) = if goal == next {
+                    (0.0, true)
+                } else {
+                    (-1.0, false)
+                };
+                self.apply(level, s, goal, a, next, reward, terminal);
+            }
+        } else {
+            self.apply(level, s, g, a, next, t.reward, t.terminal);
+        }
+        true
+    }
+
+    /// `Q(s, g, a) += alpha (y - Q)` with `y = r + gamma (1 - terminal) max_a' Q(next, g, a')`
+    /// clipped to `[-H, 0]`.
+    #[allow(clippy::too_many_arguments)]
+    fn apply(
+        &mut self,
+        level: usize,
+        s: usize,
+        g: usize,
+        a: usize,
+        next: usize,
+        reward: f32,
+        terminal: bool,
+    ) {
+        let space = &self.shared.levels[level];
         let table = &self.tables[level];
-        let bootstrap = if t.terminal {
+        let bootstrap = if terminal {
             0.0
         } else {
             let row = &table[self.row(level, next, g)..];
@@ -468,7 +517,7 @@ impl TabularAgent {
                 .map(|&a| row[a as usize])
                 .fold(f32::NEG_INFINITY, f32::max)
         };
-        let target = (t.reward + self.gamma * bootstrap).clamp(-self.horizon, 0.0);
+        let target = (reward + self.gamma * bootstrap).clamp(-self.horizon, 0.0);
         let i = self.row(level, s, g) + a;
         let q = &mut self.tables[level][i];
         let c = &mut self.counters[level];
@@ -478,7 +527,6 @@ impl TabularAgent {
         c.q += f64::from(*q);
         *q += self.learning_rate * (target - *q);
         self.updates += 1;
-        true
     }
 }
 
@@ -736,6 +784,54 @@ mod tests {
             (stats.updates, stats.mean_sq_td_error, stats.mean_q),
             (3, 0.0, 0.0)
         );
+    }
+
+    #[test]
+    fn all_goals_updates_every_goal_against_its_own_reward_and_skips_her_copies() {
+        let grid = Grid::four_rooms(10).unwrap();
+        let tabular = TabularConfig {
+            learning_rate: 0.5,
+            initial_q: InitialQ::Optimistic,
+            all_goals: true,
+            ..TabularConfig::default()
+        };
+        let mut a = TabularAgent::new(&grid, &config(2, 8), &tabular, Rng::seed_from(0)).unwrap();
+        let (s, next, own_goal) = ([0.0, 0.0], [0.0, 1.0], [0.0, 3.0]);
+        // A move towards (0, 3) that lands on (0, 1): for goal (0, 1) it is a success (target 0),
+        // for every other goal a step (target -1 + gamma * 0 from values at 0).
+        assert!(a.update(0, &transition(&s, &[3.0], -1.0, &next, &own_goal, false)));
+        let cells = grid.num_cells() as u64;
+        assert_eq!(a.updates(), cells);
+        assert_eq!(a.value(0, &s, &own_goal, &[3.0]), Some(-0.5));
+        assert_eq!(a.value(0, &s, &next, &[3.0]), Some(0.0));
+        assert_eq!(a.value(0, &s, &[8.0, 8.0], &[3.0]), Some(-0.5));
+        // Other actions and states are untouched.
+        assert_eq!(a.value(0, &s, &own_goal, &[1.0]), Some(0.0));
+        assert_eq!(a.value(0, &next, &own_goal, &[3.0]), Some(0.0));
+
+        // A HER copy of the same move is contained in the update above: nothing changes.
+        let her = Transition {
+            kind: TransitionKind::HindsightGoal,
+            ..transition(&s, &[3.0], 0.0, &next, &next, true)
+        };
+        assert!(a.update(0, &her));
+        assert_eq!(a.updates(), cells);
+
+        // A subgoal-testing penalty keeps its one goal (level 1 proposes (0, 3) from (0, 0)).
+        let penalty = Transition {
+            kind: TransitionKind::SubgoalPenalty,
+            ..transition(&s, &own_goal, -8.0, &next, &[8.0, 8.0], true)
+        };
+        assert!(a.update(1, &penalty));
+        assert_eq!(a.updates(), cells + 1);
+        assert_eq!(a.value(1, &s, &[8.0, 8.0], &own_goal), Some(-4.0));
+        assert_eq!(a.value(1, &s, &[8.0, 1.0], &own_goal), Some(0.0));
+
+        // The default learns the transition for its own goal only.
+        let mut one = agent(1, 8);
+        assert!(one.update(0, &transition(&s, &[3.0], -1.0, &next, &own_goal, false)));
+        assert_eq!(one.updates(), 1);
+        assert_eq!(one.value(0, &s, &[8.0, 8.0], &[3.0]), Some(0.0));
     }
 
     #[test]

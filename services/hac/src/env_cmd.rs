@@ -111,12 +111,13 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         println!(
             "  learner: tabular Q-learning (the network keys above are unused); [tabular] defaults: \
              learning_rate {}, initial_q {}, max_table_entries {}, replay_updates {}, \
-             replay_capacity {}",
+             replay_capacity {}, all_goals {}",
             t.learning_rate,
             serde_json::to_string(&t.initial_q)?,
             t.max_table_entries,
             t.replay_updates,
-            t.replay_capacity
+            t.replay_capacity,
+            t.all_goals
         );
     }
     println!(
