@@ -60,7 +60,7 @@ pub struct TabularConfig {
     /// subgoal) and where it led do not depend on the goal, so every such update is valid
     /// experience; HER's copies, which relabel the same transitions with a few achieved goals,
     /// are then contained in it and skipped. Penalty transitions keep their one goal.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    #[serde(default)]
     pub all_goals: bool,
 }
 
