@@ -62,10 +62,27 @@ pub struct TabularConfig {
     /// are then contained in it and skipped. Penalty transitions keep their one goal.
     #[serde(default)]
     pub all_goals: bool,
+    /// Hindsight over every stretch of the path ("all-segments updating", the trailing-state
+    /// updates of hierarchical Q-learning): after a training episode, each level `i > 0`
+    /// learns, for every goal cell, that from any cell of the episode's path the cell reached
+    /// `h <= H^i` moves later (the most level `i - 1` can cover in one subgoal) was a subgoal
+    /// that got there. The level's own hindsight action transitions are such stretches and its
+    /// HER copies relabel them, so both are then contained and skipped; subgoal penalties keep
+    /// their goal and are applied after the stretches. Level 0 is not affected.
+    ///
+    /// On by default: it is what lets the upper levels of 3 learn as fast as those of 2, and
+    /// with it the grid worlds show the paper's 3 > 2 > 1 (without it, with HAC's transitions
+    /// alone, 2 > 3 > 1; docs/RESULTS.md has both).
+    #[serde(default = "default_all_segments")]
+    pub all_segments: bool,
 }
 
 fn default_replay_capacity() -> usize {
     100_000
+}
+
+fn default_all_segments() -> bool {
+    true
 }
 
 impl Default for TabularConfig {
@@ -81,6 +98,7 @@ impl Default for TabularConfig {
             replay_updates: 0,
             replay_capacity: default_replay_capacity(),
             all_goals: false,
+            all_segments: default_all_segments(),
         }
     }
 }
@@ -301,6 +319,12 @@ pub struct TabularAgent {
     learning_rate: f32,
     /// [`TabularConfig::all_goals`].
     all_goals: bool,
+    /// [`TabularConfig::all_segments`].
+    all_segments: bool,
+    /// `H`, for the reach `H^i` of a level's subgoal.
+    horizon_steps: usize,
+    /// Per goal cell, the bootstrap value at one next state ([`Self::update_segments`]).
+    bootstrap: Vec<f32>,
     /// Breaks ties between equal values (untried actions all start at 0).
     rng: Rng,
     updates: u64,
@@ -370,6 +394,9 @@ impl TabularAgent {
             gamma: config.gamma,
             learning_rate: tabular.learning_rate,
             all_goals: tabular.all_goals,
+            all_segments: tabular.all_segments,
+            horizon_steps: config.horizon,
+            bootstrap: vec![0.0; cells],
             rng,
             updates: 0,
             skipped: 0,
@@ -457,15 +484,27 @@ impl TabularAgent {
         (s * self.shared.grid.num_cells() + g) * self.shared.levels[level].slots()
     }
 
+    /// Whether a transition of `kind` at `level` is contained in updates the agent makes anyway
+    /// ([`TabularConfig::all_goals`], [`TabularConfig::all_segments`]), so that updating it
+    /// would change nothing.
+    pub fn contained(&self, level: usize, kind: TransitionKind) -> bool {
+        match kind {
+            TransitionKind::SubgoalPenalty => false,
+            // Its state, action and next state are those of a hindsight action transition of
+            // the same level, which updates them for every goal.
+            TransitionKind::HindsightGoal => self.all_goals || (self.all_segments && level > 0),
+            // One of the stretches of the path.
+            TransitionKind::HindsightAction => self.all_segments && level > 0,
+        }
+    }
+
     /// Applies one Q-learning update (with [`TabularConfig::all_goals`], one per goal cell);
     /// `false` if the transition has no place in the tables.
     pub fn update(&mut self, level: usize, t: &Transition<'_>) -> bool {
-        let all_goals = self.all_goals && t.kind != TransitionKind::SubgoalPenalty;
-        if all_goals && t.kind == TransitionKind::HindsightGoal {
-            // Its state, action and next state are those of a hindsight action transition of
-            // the same level, which updates them for every goal.
+        if self.contained(level, t.kind) {
             return true;
         }
+        let all_goals = self.all_goals && t.kind != TransitionKind::SubgoalPenalty;
         let (grid, space) = (&self.shared.grid, &self.shared.levels[level]);
         let indices = grid.index_of_point(t.state).and_then(|s| {
             let g = grid.index_of_point(t.goal)?;
@@ -518,7 +557,11 @@ impl TabularAgent {
                 .fold(f32::NEG_INFINITY, f32::max)
         };
         let target = (reward + self.gamma * bootstrap).clamp(-self.horizon, 0.0);
-        let i = self.row(level, s, g) + a;
+        self.set(level, self.row(level, s, g) + a, target);
+    }
+
+    /// Moves entry `i` of level `level`'s table towards `target` by the learning rate.
+    fn set(&mut self, level: usize, i: usize, target: f32) {
         let q = &mut self.tables[level][i];
         let c = &mut self.counters[level];
         c.updates += 1;
@@ -527,6 +570,69 @@ impl TabularAgent {
         c.q += f64::from(*q);
         *q += self.learning_rate * (target - *q);
         self.updates += 1;
+    }
+
+    /// [`TabularConfig::all_segments`] at level `level > 0` for one episode's `path` of cells
+    /// (the start cell, then the cell after every move): newest stretch end first, every start
+    /// within `H^level` moves before it, every goal cell. Returns the number of stretches
+    /// applied; those whose end lies beyond the level's (capped) subgoal radius are skipped and
+    /// counted in [`Self::skipped`], like any transition without a place in the table.
+    pub fn update_segments(&mut self, level: usize, path: &[usize]) -> usize {
+        let shared = Arc::clone(&self.shared);
+        let ActionSpace::Subgoals(set) = &shared.levels[level] else {
+            return 0;
+        };
+        let space = &shared.levels[level];
+        let grid = &shared.grid;
+        let cells = grid.num_cells();
+        let window = self.horizon_steps.saturating_pow(level as u32);
+        let mut applied = 0;
+        for t in (1..path.len()).rev() {
+            let next = path[t];
+            // Every stretch ending here bootstraps from the same row of values per goal; the
+            // updates below never touch them (they start elsewhere).
+            for (g, v) in self.bootstrap.iter_mut().enumerate() {
+                let row = &self.tables[level][(next * cells + g) * set.slots()..];
+                *v = space
+                    .allowed(next)
+                    .iter()
+                    .map(|&a| row[a as usize])
+                    .fold(f32::NEG_INFINITY, f32::max);
+            }
+            let to = grid.cell(next);
+            for h in 1..=window.min(t) {
+                let s = path[t - h];
+                if s == next {
+                    continue;
+                }
+                let from = grid.cell(s);
+                let offset = [
+                    to.row as i32 - from.row as i32,
+                    to.col as i32 - from.col as i32,
+                ];
+                let Some(a) = set.slot(offset) else {
+                    self.skipped += 1;
+                    continue;
+                };
+                for g in 0..cells {
+                    // Reached means standing on the goal cell (the grid's threshold is half a
+                    // cell), as in `update`'s all-goals loop.
+                    let target = if g == next {
+                        0.0
+                    } else {
+                        (-1.0 + self.gamma * self.bootstrap[g]).clamp(-self.horizon, 0.0)
+                    };
+                    self.set(level, self.row(level, s, g) + a, target);
+                }
+                applied += 1;
+            }
+        }
+        applied
+    }
+
+    /// Whether [`Self::update_segments`] is part of learning ([`TabularConfig::all_segments`]).
+    pub fn all_segments(&self) -> bool {
+        self.all_segments
     }
 }
 
@@ -644,12 +750,14 @@ mod tests {
         }
     }
 
-    /// Values from 0 and alpha 0.5, so that expected values are easy to write down.
+    /// Values from 0 and alpha 0.5, so that expected values are easy to write down; every
+    /// transition updated as it comes (no stretches of the path).
     fn agent(levels: usize, horizon: usize) -> TabularAgent {
         let grid = Grid::four_rooms(10).unwrap();
         let tabular = TabularConfig {
             learning_rate: 0.5,
             initial_q: InitialQ::Optimistic,
+            all_segments: false,
             ..TabularConfig::default()
         };
         TabularAgent::new(&grid, &config(levels, horizon), &tabular, Rng::seed_from(0)).unwrap()
@@ -832,6 +940,93 @@ mod tests {
         assert!(one.update(0, &transition(&s, &[3.0], -1.0, &next, &own_goal, false)));
         assert_eq!(one.updates(), 1);
         assert_eq!(one.value(0, &s, &[8.0, 8.0], &[3.0]), Some(0.0));
+    }
+
+    #[test]
+    fn all_segments_updates_every_stretch_within_reach_for_every_goal() {
+        let grid = Grid::four_rooms(10).unwrap();
+        let tabular = TabularConfig {
+            learning_rate: 1.0,
+            all_segments: true,
+            ..TabularConfig::default()
+        };
+        // Two levels, H = 2: level 1's subgoals reach 2 moves, values start at -2.
+        let mut a = TabularAgent::new(&grid, &config(2, 2), &tabular, Rng::seed_from(0)).unwrap();
+        let c = |r: f32, col: f32| [r, col];
+        let at = |p: [f32; 2]| grid.index_of_point(&p).unwrap();
+        // Right along the top row, (0, 0) to (0, 3).
+        let path: Vec<usize> = (0..4).map(|col| at(c(0.0, col as f32))).collect();
+        // Stretch ends 3, 2, 1 with starts 2 + 2 + 1 moves back.
+        assert_eq!(a.update_segments(1, &path), 5);
+        let cells = grid.num_cells() as u64;
+        assert_eq!((a.updates(), a.skipped()), (5 * cells, 0));
+        let goal = c(0.0, 3.0);
+        // Reaching the goal's cell: target 0, from one and from two moves away.
+        assert_eq!(a.value(1, &c(0.0, 2.0), &goal, &goal), Some(0.0));
+        assert_eq!(a.value(1, &c(0.0, 1.0), &goal, &goal), Some(0.0));
+        // Newest first: (0, 2) already leads to the goal when (0, 1) -> (0, 2) bootstraps from it.
+        assert_eq!(a.value(1, &c(0.0, 1.0), &goal, &c(0.0, 2.0)), Some(-1.0));
+        assert_eq!(a.value(1, &c(0.0, 0.0), &goal, &c(0.0, 1.0)), Some(-1.0));
+        assert_eq!(a.value(1, &c(0.0, 0.0), &goal, &c(0.0, 2.0)), Some(-1.0));
+        // Any other goal: -1 + gamma * -2, clipped to -H.
+        assert_eq!(a.value(1, &c(0.0, 2.0), &c(8.0, 8.0), &goal), Some(-2.0));
+        // Level 0 and untravelled starts are untouched.
+        assert_eq!(a.value(0, &c(0.0, 2.0), &goal, &[3.0]), Some(-2.0));
+        assert_eq!(a.value(1, &c(1.0, 0.0), &goal, &c(0.0, 1.0)), Some(-2.0));
+
+        // Back and forth: a stretch that ends where it starts is no subgoal.
+        let before = a.updates();
+        let there_and_back = [at(c(7.0, 7.0)), at(c(7.0, 8.0)), at(c(7.0, 7.0))];
+        assert_eq!(a.update_segments(1, &there_and_back), 2);
+        assert_eq!(a.updates(), before + 2 * cells);
+
+        // Three levels, H = 2, and a table cap that keeps level 2's radius at 2 although its
+        // stretches reach 4 moves: the longer ones have no place and are skipped.
+        let grid = Grid::four_rooms(10).unwrap();
+        let capped = TabularConfig {
+            max_table_entries: grid.num_cells() * grid.num_cells() * SubgoalSet::slot_count(10, 2),
+            ..tabular
+        };
+        let mut b = TabularAgent::new(&grid, &config(3, 2), &capped, Rng::seed_from(0)).unwrap();
+        assert_eq!(b.subgoal_radius(2), Some(2));
+        let row: Vec<usize> = (0..5).map(|col| at(c(0.0, col as f32))).collect();
+        // Ends 4, 3, 2, 1 with 4, 3, 2, 1 starts within H^2 = 4 moves; 2 + 1 are beyond 2 cells.
+        assert_eq!(b.update_segments(2, &row), 10 - 3);
+        assert_eq!(b.skipped(), 3);
+    }
+
+    #[test]
+    fn all_segments_contain_the_upper_levels_hindsight_transitions() {
+        let grid = Grid::four_rooms(10).unwrap();
+        let tabular = TabularConfig {
+            all_segments: true,
+            ..TabularConfig::default()
+        };
+        let mut a = TabularAgent::new(&grid, &config(2, 8), &tabular, Rng::seed_from(0)).unwrap();
+        let (s, next, goal) = ([0.0, 0.0], [0.0, 1.0], [0.0, 3.0]);
+        let her = Transition {
+            kind: TransitionKind::HindsightGoal,
+            ..transition(&s, &next, 0.0, &next, &next, true)
+        };
+        // Level 1's hindsight action and HER transitions: contained, nothing changes.
+        assert!(a.update(1, &transition(&s, &next, -1.0, &next, &goal, false)));
+        assert!(a.update(1, &her));
+        assert_eq!(a.updates(), 0);
+        // Level 1's penalties and everything at level 0 are updated as before.
+        let penalty = Transition {
+            kind: TransitionKind::SubgoalPenalty,
+            ..transition(&s, &goal, -8.0, &next, &goal, true)
+        };
+        assert!(a.update(1, &penalty));
+        assert!(a.update(0, &transition(&s, &[3.0], -1.0, &next, &goal, false)));
+        let her_0 = Transition {
+            kind: TransitionKind::HindsightGoal,
+            ..transition(&s, &[3.0], 0.0, &next, &next, true)
+        };
+        assert!(a.update(0, &her_0));
+        assert_eq!(a.updates(), 3);
+        assert!(!a.contained(1, TransitionKind::SubgoalPenalty));
+        assert!(!a.contained(0, TransitionKind::HindsightGoal));
     }
 
     #[test]

@@ -115,6 +115,8 @@ pub struct TabularHac {
     exploration: TabularExploration,
     buffer: EpisodeBuffer,
     replay: Option<Replay>,
+    /// The last episode's path of cells, for [`TabularConfig::all_segments`]; reused.
+    path: Vec<usize>,
 }
 
 impl TabularHac {
@@ -147,6 +149,7 @@ impl TabularHac {
             exploration,
             buffer: EpisodeBuffer::default(),
             replay,
+            path: Vec::new(),
         })
     }
 
@@ -178,13 +181,25 @@ impl TabularHac {
         )
     }
 
-    /// The update half of [`Self::train_episode`]: one Q-learning update per collected
-    /// transition, newest first. [`TabularAgent::level_stats`] then describes these updates.
+    /// The update half of [`Self::train_episode`]: with [`TabularConfig::all_segments`], the
+    /// stretches of the episode's path at every level above 0; then one Q-learning update per
+    /// collected transition, newest first (penalties after the stretches, so that a failed test
+    /// has the last word in its episode). [`TabularAgent::level_stats`] then describes these
+    /// updates.
     pub fn learn(&mut self) {
         self.agent.start_stats_window();
         if let Some(replay) = &mut self.replay {
+            // Transitions the agent skips as contained would be no-op draws.
             for r in &self.buffer.records {
-                replay.levels[r.level].push(*r);
+                if !self.agent.contained(r.level, r.kind) {
+                    replay.levels[r.level].push(*r);
+                }
+            }
+        }
+        if self.agent.all_segments() && self.agent.num_levels() > 1 {
+            self.trace_path();
+            for level in 1..self.agent.num_levels() {
+                self.agent.update_segments(level, &self.path);
             }
         }
         self.buffer.drain_newest_first(&mut self.agent);
@@ -197,6 +212,32 @@ impl TabularHac {
                     let r = &ring.records[replay.rng.below(ring.records.len())];
                     self.agent.push(level, &r.transition());
                 }
+            }
+        }
+    }
+
+    /// Fills [`Self::path`] from level 0's hindsight action transitions, one per move in the
+    /// order made: the first one's state, then every next state.
+    fn trace_path(&mut self) {
+        self.path.clear();
+        let grid = self.agent.grid();
+        let moves = self
+            .buffer
+            .records
+            .iter()
+            .filter(|r| r.level == 0 && r.kind == TransitionKind::HindsightAction);
+        for (i, r) in moves.enumerate() {
+            let cells = if i == 0 {
+                [Some(&r.state), Some(&r.next_state)]
+            } else {
+                [None, Some(&r.next_state)]
+            };
+            for point in cells.into_iter().flatten() {
+                // Every state of a four-rooms episode is a free cell.
+                let cell = grid
+                    .index_of_point(point)
+                    .expect("four-rooms states are free cells");
+                self.path.push(cell);
             }
         }
     }
@@ -330,7 +371,12 @@ mod tests {
                 hac.agent().tables.clone(),
             )
         };
-        let (plain, sweeps, _) = run(&TabularConfig::default());
+        // Every transition updated as it comes (no stretches of the path).
+        let one_by_one = TabularConfig {
+            all_segments: false,
+            ..TabularConfig::default()
+        };
+        let (plain, sweeps, _) = run(&one_by_one);
         assert_eq!(
             plain, sweeps,
             "without replay each transition is updated once"
@@ -338,7 +384,7 @@ mod tests {
         let replaying = TabularConfig {
             replay_updates: 7,
             replay_capacity: 50,
-            ..TabularConfig::default()
+            ..one_by_one.clone()
         };
         let (updates, sweeps, tables) = run(&replaying);
         // Every level has transitions from the first episode on: 7 more per level per episode.
@@ -349,6 +395,86 @@ mod tests {
             ..replaying
         };
         assert!(matches!(bad.validate(), Err(e) if e.key == "replay_capacity"));
+
+        // With the stretches of the path, the upper level's hindsight action and HER
+        // transitions are contained in them: its ring keeps only penalties, level 0 keeps all.
+        let segments = TabularConfig {
+            all_segments: true,
+            replay_updates: 7,
+            replay_capacity: 10_000,
+            ..TabularConfig::default()
+        };
+        let mut rng = Rng::seed_from(3);
+        let mut env = FourRooms::new(5).unwrap();
+        let mut hac = TabularHac::new(&env, config.clone(), &segments, &mut rng).unwrap();
+        let (mut level0, mut penalties) = (0, 0);
+        for _ in 0..20 {
+            hac.collect_episode(&mut env, &mut rng);
+            let records = &hac.buffer.records;
+            level0 += records.iter().filter(|r| r.level == 0).count();
+            penalties += records
+                .iter()
+                .filter(|r| r.level == 1 && r.kind == TransitionKind::SubgoalPenalty)
+                .count();
+            hac.learn();
+        }
+        let rings = &hac.replay.as_ref().unwrap().levels;
+        assert_eq!(rings[0].records.len(), level0);
+        assert_eq!(rings[1].records.len(), penalties);
+        assert!(
+            rings[1]
+                .records
+                .iter()
+                .all(|r| r.kind == TransitionKind::SubgoalPenalty)
+        );
+    }
+
+    #[test]
+    fn all_segments_learn_from_the_episode_path_of_moves() {
+        let env = FourRooms::new(5).unwrap();
+        let config = hac_core::Env::default_config(&env, 3);
+        let tabular = TabularConfig {
+            all_segments: true,
+            ..TabularConfig::default()
+        };
+        let mut rng = Rng::seed_from(4);
+        let mut env = FourRooms::new(5).unwrap();
+        let mut hac = TabularHac::new(&env, config.clone(), &tabular, &mut rng).unwrap();
+        for _ in 0..3 {
+            let outcome = hac.collect_episode(&mut env, &mut rng);
+            hac.trace_path();
+            // The start cell, then one cell per move, each the same as or next to the last.
+            assert_eq!(hac.path.len(), outcome.steps + 1);
+            let grid = hac.agent().grid();
+            for w in hac.path.windows(2) {
+                let (a, b) = (grid.cell(w[0]), grid.cell(w[1]));
+                assert!(a.row.abs_diff(b.row) + a.col.abs_diff(b.col) <= 1);
+            }
+            let starts = hac_core::Env::state(&env);
+            assert_eq!(
+                grid.cell(*hac.path.last().unwrap()).to_f32(),
+                [starts[0], starts[1]]
+            );
+            // Updates: level 0's transitions one by one, the stretches of both upper levels
+            // for every goal, penalties one by one; nothing else of the upper levels.
+            let records = &hac.buffer.records;
+            let one_by_one = records
+                .iter()
+                .filter(|r| r.level == 0 || r.kind == TransitionKind::SubgoalPenalty)
+                .count() as u64;
+            let mut probe =
+                TabularAgent::new(env.grid(), &config, &tabular, Rng::seed_from(0)).unwrap();
+            let stretches =
+                (probe.update_segments(1, &hac.path) + probe.update_segments(2, &hac.path)) as u64;
+            let before = hac.agent().updates();
+            hac.learn();
+            let cells = env.grid().num_cells() as u64;
+            assert_eq!(
+                hac.agent().updates() - before,
+                one_by_one + stretches * cells
+            );
+        }
+        assert_eq!(hac.agent().skipped(), 0, "radius H^i holds every stretch");
     }
 
     #[test]

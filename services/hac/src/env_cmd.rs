@@ -111,13 +111,14 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         println!(
             "  learner: tabular Q-learning (the network keys above are unused); [tabular] defaults: \
              learning_rate {}, initial_q {}, max_table_entries {}, replay_updates {}, \
-             replay_capacity {}, all_goals {}",
+             replay_capacity {}, all_goals {}, all_segments {}",
             t.learning_rate,
             serde_json::to_string(&t.initial_q)?,
             t.max_table_entries,
             t.replay_updates,
             t.replay_capacity,
-            t.all_goals
+            t.all_goals,
+            t.all_segments
         );
     }
     println!(

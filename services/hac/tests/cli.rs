@@ -248,6 +248,7 @@ fn env_list_and_describe() {
     );
     assert_eq!(d["tabular"]["initial_q"], "pessimistic");
     assert_eq!(d["tabular"]["all_goals"], false);
+    assert_eq!(d["tabular"]["all_segments"], true);
     // Another budget: H of every level count follows it (12 / 6 for 144; 22 / 8 for 480).
     assert_eq!(d["defaults"][1]["horizon"], 12);
     let o = hac(&[
