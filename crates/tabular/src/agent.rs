@@ -152,6 +152,8 @@ struct SubgoalSet {
     /// Allowed slots of cell `s`: `allowed[allowed_start[s]..allowed_start[s + 1]]`.
     allowed_start: Vec<u32>,
     allowed: Vec<u32>,
+    /// `is_allowed[s * slots + a]`: slot `a` is among cell `s`'s allowed slots.
+    is_allowed: Vec<bool>,
 }
 
 impl SubgoalSet {
@@ -181,10 +183,12 @@ impl SubgoalSet {
         }
         let mut allowed_start = vec![0];
         let mut allowed = Vec::new();
-        for &cell in grid.cells() {
+        let mut is_allowed = vec![false; grid.num_cells() * offsets.len()];
+        for (s, &cell) in grid.cells().iter().enumerate() {
             for (slot, &o) in offsets.iter().enumerate() {
                 if o != [0, 0] && cell.offset(o, grid.size()).is_some_and(|c| grid.is_free(c)) {
                     allowed.push(slot as u32);
+                    is_allowed[s * offsets.len() + slot] = true;
                 }
             }
             allowed_start.push(allowed.len() as u32);
@@ -196,6 +200,7 @@ impl SubgoalSet {
             slot_of,
             allowed_start,
             allowed,
+            is_allowed,
         }
     }
 
@@ -234,6 +239,14 @@ impl ActionSpace {
         match self {
             ActionSpace::Moves => MOVES.len(),
             ActionSpace::Subgoals(set) => set.slots(),
+        }
+    }
+
+    /// Whether the level may choose slot `a` from cell `s`.
+    fn is_allowed(&self, s: usize, a: usize) -> bool {
+        match self {
+            ActionSpace::Moves => true,
+            ActionSpace::Subgoals(set) => set.is_allowed[s * set.slots() + a],
         }
     }
 
@@ -312,6 +325,11 @@ pub struct TabularAgent {
     shared: Arc<Shared>,
     /// Per level, `Q[((s * cells) + g) * slots + a]`.
     pub(crate) tables: Vec<Vec<f32>>,
+    /// Per level, `best[s * cells + g]`: the largest `Q(s, g, a)` over the slots allowed at `s`,
+    /// the bootstrap value of every update whose next state is `s`. Kept in step with the
+    /// table by [`Self::set`] (and rebuilt by [`Self::rebuild_best`] when a table is replaced),
+    /// so that a bootstrap reads one value instead of scanning up to thousands of slots.
+    best: Vec<Vec<f32>>,
     /// The value every entry starts from ([`InitialQ`]).
     pub(crate) initial_value: f32,
     horizon: f32,
@@ -323,8 +341,6 @@ pub struct TabularAgent {
     all_segments: bool,
     /// `H`, for the reach `H^i` of a level's subgoal.
     horizon_steps: usize,
-    /// Per goal cell, the bootstrap value at one next state ([`Self::update_segments`]).
-    bootstrap: Vec<f32>,
     /// Breaks ties between equal values (untried actions all start at 0).
     rng: Rng,
     updates: u64,
@@ -382,8 +398,9 @@ impl TabularAgent {
             .iter()
             .map(|s| vec![init; per_slot * s.slots()])
             .collect();
+        let levels_len = levels.len();
         let counters = vec![LevelCounters::default(); levels.len()];
-        Ok(Self {
+        let mut agent = Self {
             shared: Arc::new(Shared {
                 grid: grid.clone(),
                 levels,
@@ -396,12 +413,35 @@ impl TabularAgent {
             all_goals: tabular.all_goals,
             all_segments: tabular.all_segments,
             horizon_steps: config.horizon,
-            bootstrap: vec![0.0; cells],
+            best: vec![Vec::new(); levels_len],
             rng,
             updates: 0,
             skipped: 0,
             counters,
-        })
+        };
+        for level in 0..levels_len {
+            agent.rebuild_best(level);
+        }
+        Ok(agent)
+    }
+
+    /// Recomputes level `level`'s [`Self::best`] from its table.
+    pub(crate) fn rebuild_best(&mut self, level: usize) {
+        let cells = self.shared.grid.num_cells();
+        let mut best = std::mem::take(&mut self.best[level]);
+        best.clear();
+        best.extend((0..cells * cells).map(|i| self.max_allowed(level, i / cells, i % cells)));
+        self.best[level] = best;
+    }
+
+    /// The largest `Q(s, g, a)` over the slots allowed at `s` (`-inf` if none is).
+    fn max_allowed(&self, level: usize, s: usize, g: usize) -> f32 {
+        let row = &self.tables[level][self.row(level, s, g)..];
+        self.shared.levels[level]
+            .allowed(s)
+            .iter()
+            .map(|&a| row[a as usize])
+            .fold(f32::NEG_INFINITY, f32::max)
     }
 
     /// The behaviour policy's random choices for this agent (see [`TabularExploration`]).
@@ -544,32 +584,40 @@ impl TabularAgent {
         reward: f32,
         terminal: bool,
     ) {
-        let space = &self.shared.levels[level];
-        let table = &self.tables[level];
+        let cells = self.shared.grid.num_cells();
         let bootstrap = if terminal {
             0.0
         } else {
-            let row = &table[self.row(level, next, g)..];
-            space
-                .allowed(next)
-                .iter()
-                .map(|&a| row[a as usize])
-                .fold(f32::NEG_INFINITY, f32::max)
+            self.best[level][next * cells + g]
         };
         let target = (reward + self.gamma * bootstrap).clamp(-self.horizon, 0.0);
-        self.set(level, self.row(level, s, g) + a, target);
+        self.set(level, s, g, a, target);
     }
 
-    /// Moves entry `i` of level `level`'s table towards `target` by the learning rate.
-    fn set(&mut self, level: usize, i: usize, target: f32) {
+    /// Moves `Q(s, g, a)` of level `level` towards `target` by the learning rate, and keeps
+    /// [`Self::best`] in step.
+    fn set(&mut self, level: usize, s: usize, g: usize, a: usize, target: f32) {
+        let i = self.row(level, s, g) + a;
         let q = &mut self.tables[level][i];
+        let old = *q;
         let c = &mut self.counters[level];
         c.updates += 1;
         c.window += 1;
-        c.sq_td_error += f64::from((target - *q) * (target - *q));
-        c.q += f64::from(*q);
-        *q += self.learning_rate * (target - *q);
+        c.sq_td_error += f64::from((target - old) * (target - old));
+        c.q += f64::from(old);
+        *q += self.learning_rate * (target - old);
+        let new = *q;
         self.updates += 1;
+        if self.shared.levels[level].is_allowed(s, a) {
+            let cells = self.shared.grid.num_cells();
+            let best = self.best[level][s * cells + g];
+            if new >= best {
+                self.best[level][s * cells + g] = new;
+            } else if old == best {
+                // The maximum went down: another slot may hold it now.
+                self.best[level][s * cells + g] = self.max_allowed(level, s, g);
+            }
+        }
     }
 
     /// [`TabularConfig::all_segments`] at level `level > 0` for one episode's `path` of cells
@@ -582,23 +630,14 @@ impl TabularAgent {
         let ActionSpace::Subgoals(set) = &shared.levels[level] else {
             return 0;
         };
-        let space = &shared.levels[level];
         let grid = &shared.grid;
         let cells = grid.num_cells();
         let window = self.horizon_steps.saturating_pow(level as u32);
         let mut applied = 0;
         for t in (1..path.len()).rev() {
             let next = path[t];
-            // Every stretch ending here bootstraps from the same row of values per goal; the
-            // updates below never touch them (they start elsewhere).
-            for (g, v) in self.bootstrap.iter_mut().enumerate() {
-                let row = &self.tables[level][(next * cells + g) * set.slots()..];
-                *v = space
-                    .allowed(next)
-                    .iter()
-                    .map(|&a| row[a as usize])
-                    .fold(f32::NEG_INFINITY, f32::max);
-            }
+            // Every stretch ending here bootstraps from `best` at `next`, which the updates
+            // below never change (they start elsewhere).
             let to = grid.cell(next);
             for h in 1..=window.min(t) {
                 let s = path[t - h];
@@ -620,9 +659,10 @@ impl TabularAgent {
                     let target = if g == next {
                         0.0
                     } else {
-                        (-1.0 + self.gamma * self.bootstrap[g]).clamp(-self.horizon, 0.0)
+                        let bootstrap = self.best[level][next * cells + g];
+                        (-1.0 + self.gamma * bootstrap).clamp(-self.horizon, 0.0)
                     };
-                    self.set(level, self.row(level, s, g) + a, target);
+                    self.set(level, s, g, a, target);
                 }
                 applied += 1;
             }
@@ -1027,6 +1067,58 @@ mod tests {
         assert_eq!(a.updates(), 3);
         assert!(!a.contained(1, TransitionKind::SubgoalPenalty));
         assert!(!a.contained(0, TransitionKind::HindsightGoal));
+    }
+
+    #[test]
+    fn the_cached_maximum_follows_every_update_up_and_down() {
+        let grid = Grid::four_rooms(10).unwrap();
+        for (learning_rate, initial_q) in
+            [(1.0, InitialQ::Pessimistic), (0.5, InitialQ::Optimistic)]
+        {
+            let tabular = TabularConfig {
+                learning_rate,
+                initial_q,
+                all_segments: false,
+                ..TabularConfig::default()
+            };
+            let mut a =
+                TabularAgent::new(&grid, &config(3, 3), &tabular, Rng::seed_from(0)).unwrap();
+            let mut rng = Rng::seed_from(1);
+            let cells = grid.cells().to_vec();
+            let pick = |rng: &mut Rng| cells[rng.below(cells.len())];
+            for _ in 0..20_000 {
+                let level = rng.below(3);
+                let (s, next, goal) = (pick(&mut rng), pick(&mut rng), pick(&mut rng));
+                // Subgoals anywhere within reach, the state itself included (a slot that is
+                // never allowed); rewards that raise and lower values, penalties among them.
+                let action = if level == 0 {
+                    [rng.below(4) as f32, 0.0]
+                } else {
+                    let r = 3usize.pow(level as u32) as i32;
+                    let d = |rng: &mut Rng| rng.below(2 * r as usize + 1) as i32 - r;
+                    let (dr, dc) = (d(&mut rng), d(&mut rng));
+                    [(s.row as i32 + dr) as f32, (s.col as i32 + dc) as f32]
+                };
+                let width = if level == 0 { 1 } else { 2 };
+                let reward = [-1.0, 0.0, -3.0][rng.below(3)];
+                let (s, next, goal) = (s.to_f32(), next.to_f32(), goal.to_f32());
+                let t = Transition {
+                    kind: if reward == -3.0 {
+                        TransitionKind::SubgoalPenalty
+                    } else {
+                        TransitionKind::HindsightAction
+                    },
+                    ..transition(&s, &action[..width], reward, &next, &goal, reward != -1.0)
+                };
+                a.update(level, &t);
+            }
+            assert!(a.updates() > 10_000);
+            let cached = a.best.clone();
+            for level in 0..3 {
+                a.rebuild_best(level);
+            }
+            assert_eq!(cached, a.best, "alpha {learning_rate}");
+        }
     }
 
     #[test]

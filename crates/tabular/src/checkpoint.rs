@@ -201,6 +201,7 @@ impl TabularAgent {
             let code = code.data();
             let table = decode(&palette, code, len)?;
             self.tables[level] = table;
+            self.rebuild_best(level);
             return Ok(());
         }
         let index = read("index", Dtype::U32)?;
@@ -221,6 +222,7 @@ impl TabularAgent {
             *slot = f32::from_le_bytes(*v);
         }
         self.tables[level] = table;
+        self.rebuild_best(level);
         Ok(())
     }
 }
