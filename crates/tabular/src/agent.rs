@@ -49,6 +49,9 @@ pub struct TabularConfig {
     /// update to this many transitions drawn uniformly from its earlier ones (the last
     /// `replay_capacity`), re-bootstrapping them from the current values as the neural learner
     /// does with its replay batches. 0: each transition is updated once, when its episode ends.
+    /// Transitions the agent skips as contained (see [`Self::all_goals`] and
+    /// [`Self::all_segments`]) are not kept: with `all_segments`, an upper level replays its
+    /// penalties only, since the stretches of a path are learned once, after their episode.
     #[serde(default)]
     pub replay_updates: usize,
     /// Transitions each level keeps for replay (the oldest are overwritten).
