@@ -6,9 +6,12 @@
 //!   `[row, col]`, the move as one f32 index), with its budget and default hyperparameters.
 //! - [`agent`]: [`TabularAgent`] (one Q table per level; the greedy [`hac_core::Policy`] and the
 //!   Q-learning update) and [`TabularExploration`] (HAC's behaviour policy for discrete choices).
-//! - [`learner`]: [`TabularHac`], which runs episodes through the unchanged core rollout, and
-//!   [`success_curve`], the mean learning curve of several trials.
-//! - [`checkpoint`]: one level's Q table as a sparse safetensors file.
+//! - [`learner`]: [`TabularHac`], which runs episodes through the unchanged core rollout, learns
+//!   from their transitions and (by default, [`TabularConfig::all_segments`]) from every stretch
+//!   of their path at the upper levels, and [`success_curve`], the mean learning curve of
+//!   several trials.
+//! - [`checkpoint`]: one level's Q table as a compact safetensors file (sparse, or coded
+//!   against a palette of its values).
 //! - This file: the registry ([`names`], [`make`], [`four_rooms`]).
 
 #![forbid(unsafe_code)]
