@@ -226,6 +226,15 @@ impl SubgoalSet {
         let slot = self.slot_of[i];
         (slot != u32::MAX).then_some(slot as usize)
     }
+
+    /// The slot of subgoal cell `to` proposed from cell `from`, if within the radius.
+    fn slot_between(&self, grid: &Grid, from: usize, to: usize) -> Option<usize> {
+        let (from, to) = (grid.cell(from), grid.cell(to));
+        self.slot([
+            to.row as i32 - from.row as i32,
+            to.col as i32 - from.col as i32,
+        ])
+    }
 }
 
 /// What one level chooses among.
@@ -281,14 +290,7 @@ impl ActionSpace {
                 let a = action.first()?.round();
                 (0.0..MOVES.len() as f32).contains(&a).then_some(a as usize)
             }
-            ActionSpace::Subgoals(set) => {
-                let target = grid.cell(grid.index_of_point(action)?);
-                let from = grid.cell(s);
-                set.slot([
-                    target.row as i32 - from.row as i32,
-                    target.col as i32 - from.col as i32,
-                ])
-            }
+            ActionSpace::Subgoals(set) => set.slot_between(grid, s, grid.index_of_point(action)?),
         }
     }
 }
@@ -559,19 +561,25 @@ impl TabularAgent {
             return false;
         };
         if all_goals {
-            for goal in 0..grid.num_cells() {
-                // Reached means standing on the goal cell (the grid's threshold is half a cell).
-                let (reward, terminal) = if goal == next {
-                    (0.0, true)
-                } else {
-                    (-1.0, false)
-                };
-                self.apply(level, s, goal, a, next, reward, terminal);
-            }
+            self.apply_every_goal(level, s, a, next);
         } else {
             self.apply(level, s, g, a, next, t.reward, t.terminal);
         }
         true
+    }
+
+    /// [`Self::apply`] for every goal cell `g`, with the reward and terminal of `g`: 0 and
+    /// terminal if `next` is `g`, else -1.
+    fn apply_every_goal(&mut self, level: usize, s: usize, a: usize, next: usize) {
+        for goal in 0..self.shared.grid.num_cells() {
+            // Reached means standing on the goal cell (the grid's threshold is half a cell).
+            let (reward, terminal) = if goal == next {
+                (0.0, true)
+            } else {
+                (-1.0, false)
+            };
+            self.apply(level, s, goal, a, next, reward, terminal);
+        }
     }
 
     /// `Q(s, g, a) += alpha (y - Q)` with `y = r + gamma (1 - terminal) max_a' Q(next, g, a')`
@@ -633,41 +641,23 @@ impl TabularAgent {
         let ActionSpace::Subgoals(set) = &shared.levels[level] else {
             return 0;
         };
-        let grid = &shared.grid;
-        let cells = grid.num_cells();
         let window = self.horizon_steps.saturating_pow(level as u32);
         let mut applied = 0;
         for t in (1..path.len()).rev() {
-            let next = path[t];
             // Every stretch ending here bootstraps from `best` at `next`, which the updates
             // below never change (they start elsewhere).
-            let to = grid.cell(next);
-            for h in 1..=window.min(t) {
-                let s = path[t - h];
+            let next = path[t];
+            for &s in path[t - window.min(t)..t].iter().rev() {
                 if s == next {
                     continue;
                 }
-                let from = grid.cell(s);
-                let offset = [
-                    to.row as i32 - from.row as i32,
-                    to.col as i32 - from.col as i32,
-                ];
-                let Some(a) = set.slot(offset) else {
-                    self.skipped += 1;
-                    continue;
-                };
-                for g in 0..cells {
-                    // Reached means standing on the goal cell (the grid's threshold is half a
-                    // cell), as in `update`'s all-goals loop.
-                    let target = if g == next {
-                        0.0
-                    } else {
-                        let bootstrap = self.best[level][next * cells + g];
-                        (-1.0 + self.gamma * bootstrap).clamp(-self.horizon, 0.0)
-                    };
-                    self.set(level, s, g, a, target);
+                match set.slot_between(&shared.grid, s, next) {
+                    Some(a) => {
+                        self.apply_every_goal(level, s, a, next);
+                        applied += 1;
+                    }
+                    None => self.skipped += 1,
                 }
-                applied += 1;
             }
         }
         applied
@@ -795,15 +785,18 @@ mod tests {
 
     /// Values from 0 and alpha 0.5, so that expected values are easy to write down; every
     /// transition updated as it comes (no stretches of the path).
-    fn agent(levels: usize, horizon: usize) -> TabularAgent {
-        let grid = Grid::four_rooms(10).unwrap();
-        let tabular = TabularConfig {
+    fn easy() -> TabularConfig {
+        TabularConfig {
             learning_rate: 0.5,
             initial_q: InitialQ::Optimistic,
             all_segments: false,
             ..TabularConfig::default()
-        };
-        TabularAgent::new(&grid, &config(levels, horizon), &tabular, Rng::seed_from(0)).unwrap()
+        }
+    }
+
+    fn agent(levels: usize, horizon: usize) -> TabularAgent {
+        let grid = Grid::four_rooms(10).unwrap();
+        TabularAgent::new(&grid, &config(levels, horizon), &easy(), Rng::seed_from(0)).unwrap()
     }
 
     #[test]
@@ -941,10 +934,8 @@ mod tests {
     fn all_goals_updates_every_goal_against_its_own_reward_and_skips_her_copies() {
         let grid = Grid::four_rooms(10).unwrap();
         let tabular = TabularConfig {
-            learning_rate: 0.5,
-            initial_q: InitialQ::Optimistic,
             all_goals: true,
-            ..TabularConfig::default()
+            ..easy()
         };
         let mut a = TabularAgent::new(&grid, &config(2, 8), &tabular, Rng::seed_from(0)).unwrap();
         let (s, next, own_goal) = ([0.0, 0.0], [0.0, 1.0], [0.0, 3.0]);

@@ -221,24 +221,21 @@ impl TabularHac {
     fn trace_path(&mut self) {
         self.path.clear();
         let grid = self.agent.grid();
+        // Every state of a four-rooms episode is a free cell.
+        let cell = |p: &[f32]| {
+            grid.index_of_point(p)
+                .expect("four-rooms states are free cells")
+        };
         let moves = self
             .buffer
             .records
             .iter()
             .filter(|r| r.level == 0 && r.kind == TransitionKind::HindsightAction);
-        for (i, r) in moves.enumerate() {
-            let cells = if i == 0 {
-                [Some(&r.state), Some(&r.next_state)]
-            } else {
-                [None, Some(&r.next_state)]
-            };
-            for point in cells.into_iter().flatten() {
-                // Every state of a four-rooms episode is a free cell.
-                let cell = grid
-                    .index_of_point(point)
-                    .expect("four-rooms states are free cells");
-                self.path.push(cell);
+        for r in moves {
+            if self.path.is_empty() {
+                self.path.push(cell(&r.state));
             }
+            self.path.push(cell(&r.next_state));
         }
     }
 
