@@ -17,6 +17,7 @@ fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunC
         stop_at: None,
         replay_shards: 2,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     }

@@ -26,6 +26,7 @@ fn learner(episodes_in_flight: u32) -> Arc<Learner> {
         stop_at: None,
         replay_shards: 1,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     };

@@ -21,7 +21,8 @@ use hac_nn::{LearnerConfig, LevelLearner, NnError};
 use serde::{Deserialize, Serialize};
 
 pub use run_config::{
-    MAX_EPISODE_ACTIONS, RunConfig, RunConfigError, check_max_actions, set_checked_budget,
+    MAX_EPISODE_ACTIONS, RunConfig, RunConfigError, check_max_actions, check_subgoal_bounds,
+    set_checked_budget,
 };
 
 /// Why an agent could not be built, saved or loaded.

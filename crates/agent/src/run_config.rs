@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use hac_core::AgentConfig;
+use hac_core::{AgentConfig, Bounds};
 use hac_tabular::TabularConfig;
 use serde::{Deserialize, Serialize};
 
@@ -29,6 +29,11 @@ pub struct RunConfig {
     /// shows it); training and test episodes alike end after this many actions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_actions: Option<usize>,
+    /// Subgoal bounds replacing the environment's (`hac env describe` shows them), as
+    /// `{ low = [...], high = [...] }` with one value per subgoal dimension: the box the levels
+    /// above 0 propose subgoals in. Not for the grid worlds, whose subgoals are cells.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub subgoal_bounds: Option<Bounds>,
     /// HAC hyperparameters (defaults: the environment's, for this number of levels).
     pub agent: AgentConfig,
     /// The tabular learner's own settings; present exactly for the grid worlds. Set under
@@ -124,6 +129,17 @@ impl RunConfig {
             origin: origin.to_string(),
             source,
         })?;
+        if let Some(bounds) = &self.subgoal_bounds {
+            if self.is_tabular() {
+                return invalid(
+                    "subgoal_bounds",
+                    "the grid worlds' subgoals are cells; they take no bounds".into(),
+                );
+            }
+            if let Err(message) = check_subgoal_bounds(bounds, env.spec().subgoal_dim()) {
+                return invalid("subgoal_bounds", message);
+            }
+        }
         if self.is_tabular() != self.tabular.is_some() {
             return invalid(
                 "tabular",
@@ -160,15 +176,18 @@ impl RunConfig {
     pub fn make_env(&self) -> Result<Box<dyn hac_core::Env>, hac_envs::UnknownEnv> {
         let mut env =
             hac_envs::make(&self.env).or_else(|e| hac_tabular::make(&self.env).map_err(|_| e))?;
-        self.apply_budget(env.as_mut());
+        self.apply_to_env(env.as_mut());
         Ok(env)
     }
 
-    /// Gives `env` the run's episode budget, if the run sets one (for callers that build the
-    /// environment themselves, like the tabular learner's concrete grid).
-    pub fn apply_budget(&self, env: &mut dyn hac_core::Env) {
+    /// Gives `env` the run's episode budget and subgoal bounds, where the run sets them (for
+    /// callers that build the environment themselves, like the tabular learner's concrete grid).
+    pub fn apply_to_env(&self, env: &mut dyn hac_core::Env) {
         if let Some(n) = self.max_actions {
             env.set_max_actions(n);
+        }
+        if let Some(bounds) = &self.subgoal_bounds {
+            env.set_subgoal_bounds(bounds.clone());
         }
     }
 }
@@ -184,6 +203,26 @@ pub fn check_max_actions(n: usize) -> Result<(), String> {
     } else {
         Err(format!("{n} (must be 1 to {MAX_EPISODE_ACTIONS} actions)"))
     }
+}
+
+/// Checks a run's `subgoal_bounds` against the environment's `dim` subgoal dimensions; the
+/// message says what is wrong.
+pub fn check_subgoal_bounds(bounds: &Bounds, dim: usize) -> Result<(), String> {
+    if bounds.low.len() != dim || bounds.high.len() != dim {
+        return Err(format!(
+            "{} low and {} high values for {dim} subgoal dimensions (need {dim} of each)",
+            bounds.low.len(),
+            bounds.high.len()
+        ));
+    }
+    for (d, (lo, hi)) in bounds.low.iter().zip(&bounds.high).enumerate() {
+        if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+            return Err(format!(
+                "dimension {d}: low {lo} and high {hi} must be finite with low < high"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Gives `env` the episode budget `n` once [`check_max_actions`] accepts it (its message

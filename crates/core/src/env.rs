@@ -122,6 +122,11 @@ pub trait Env: Send + std::fmt::Debug {
     /// pass at least 1.
     fn set_max_actions(&mut self, max_actions: usize);
 
+    /// Replaces the subgoal bounds, `spec().subgoal_bounds` (a run's `subgoal_bounds` key): the
+    /// box the actors of levels above 0 output in, which also scales their relative noise and
+    /// bounds their random subgoals. Callers pass `spec().subgoal_dim()` dimensions.
+    fn set_subgoal_bounds(&mut self, bounds: Bounds);
+
     /// The recommended hyperparameters for a hierarchy of `levels` levels (ENVS.md's defaults).
     fn default_config(&self, levels: usize) -> AgentConfig;
 

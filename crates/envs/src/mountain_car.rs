@@ -135,6 +135,10 @@ impl Env for MountainCar {
         self.spec.max_actions = max_actions;
     }
 
+    fn set_subgoal_bounds(&mut self, bounds: Bounds) {
+        self.spec.subgoal_bounds = bounds;
+    }
+
     /// The PyTorch port's preset (ENVS.md; the port's `train.py`, `HAC.py`, `utils.py` and
     /// README) at every level count; where it says nothing, the values are ours and say so.
     fn default_config(&self, levels: usize) -> AgentConfig {

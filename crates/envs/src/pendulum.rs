@@ -176,6 +176,10 @@ impl Env for Pendulum {
         self.spec.max_actions = max_actions;
     }
 
+    fn set_subgoal_bounds(&mut self, bounds: Bounds) {
+        self.spec.subgoal_bounds = bounds;
+    }
+
     /// HAC.md's reference values, with ENVS.md's pendulum specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
         // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose

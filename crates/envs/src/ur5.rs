@@ -34,6 +34,8 @@
 //! (`4.0` is reached at `4.0 - 2pi`), and a goal near +-pi is reached from either side of the
 //! seam. Compared as plain numbers, as before, the seven eighths of the box with an angle beyond
 //! +-pi could never be reached, and a subgoal there could only be penalised.
+//! Since every direction is then in the box twice, a run can bound the subgoal angles by one turn
+//! instead (`subgoal_bounds` in the run config; docs/RESULTS.md measures it).
 //! Wrapping is exact for the physics (M, C and g depend on q only through sines and cosines).
 
 pub mod arm;
@@ -243,6 +245,10 @@ impl Env for Ur5Reacher {
 
     fn set_max_actions(&mut self, max_actions: usize) {
         self.spec.max_actions = max_actions;
+    }
+
+    fn set_subgoal_bounds(&mut self, bounds: Bounds) {
+        self.spec.subgoal_bounds = bounds;
     }
 
     /// HAC.md's reference values, with ENVS.md's UR5 specifics (H, noise, storage, schedule).

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
-use hac_core::AgentConfig;
+use hac_core::{AgentConfig, Bounds};
 use hac_tabular::TabularConfig;
 use serde::Deserialize;
 
@@ -23,6 +23,7 @@ struct FileConfig {
     stop_at: Option<f32>,
     replay_shards: Option<usize>,
     max_actions: Option<usize>,
+    subgoal_bounds: Option<Bounds>,
     agent: Option<toml::Table>,
     tabular: Option<toml::Table>,
     /// The daemons' tables, checked key by key against their flags by [`crate::daemon`]; the
@@ -82,6 +83,17 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         // Before the defaults: an H derived from the budget follows the run's.
         hac_agent::set_checked_budget(env.as_mut(), n)
             .map_err(|message| anyhow!("invalid value for `max_actions`: {message}"))?;
+    }
+    if let Some(bounds) = &file_config.subgoal_bounds {
+        if registry::is_tabular(&env_name) {
+            bail!(
+                "invalid value for `subgoal_bounds`: the grid worlds' subgoals are cells; they \
+                 take no bounds"
+            );
+        }
+        hac_agent::check_subgoal_bounds(bounds, env.spec().subgoal_dim())
+            .map_err(|message| anyhow!("invalid value for `subgoal_bounds`: {message}"))?;
+        env.set_subgoal_bounds(bounds.clone());
     }
     let levels = flags
         .levels
@@ -164,6 +176,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .or(file_config.replay_shards)
             .unwrap_or(1),
         max_actions,
+        subgoal_bounds: file_config.subgoal_bounds,
         agent,
         tabular,
     };
@@ -409,6 +422,67 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("max_actions"), "{e}");
+    }
+
+    #[test]
+    fn run_subgoal_bounds_replace_the_environments() {
+        use std::f32::consts::PI;
+        let from = |text: &str| {
+            let f = write(text);
+            resolve(Some(&f.0), Overrides::default())
+        };
+        let c = from(
+            "env = \"ur5-reacher\"\nlevels = 3\n\
+             subgoal_bounds = { low = [-3.1415927, -3.1415927, -3.1415927, -4, -4, -4], \
+             high = [3.1415927, 3.1415927, 3.1415927, 4, 4, 4] }\n",
+        )
+        .unwrap();
+        let env = c.make_env().unwrap();
+        let bounds = &env.spec().subgoal_bounds;
+        assert_eq!(bounds.high, [PI, PI, PI, 4.0, 4.0, 4.0]);
+        assert_eq!(env.spec().level_action_bounds(1), bounds);
+        // Kept in config.toml and read back the same.
+        let text = c.to_toml();
+        assert!(text.contains("subgoal_bounds"), "{text}");
+        assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), c);
+        // Absent: the environment's own (+-2 pi on the angles), and nothing written.
+        let plain = from("env = \"ur5-reacher\"\n").unwrap();
+        assert_eq!(
+            plain.make_env().unwrap().spec().subgoal_bounds.high[0],
+            2.0 * PI
+        );
+        assert!(!plain.to_toml().contains("subgoal_bounds"));
+
+        // Refused by name: a wrong dimension count, low >= high, a non-finite value, a grid world;
+        // in a file and in a run config read back.
+        for (text, needle) in [
+            (
+                "env = \"pendulum\"\nsubgoal_bounds = { low = [-1], high = [1] }\n",
+                "2 subgoal dimensions",
+            ),
+            (
+                "env = \"pendulum\"\nsubgoal_bounds = { low = [-1, 2], high = [1, 2] }\n",
+                "dimension 1",
+            ),
+            (
+                "env = \"pendulum\"\nsubgoal_bounds = { low = [-1, -nan], high = [1, 2] }\n",
+                "dimension 1",
+            ),
+            (
+                "env = \"four-rooms\"\nsubgoal_bounds = { low = [0, 0], high = [1, 1] }\n",
+                "cells",
+            ),
+        ] {
+            let e = format!("{:#}", from(text).unwrap_err());
+            assert!(e.contains("subgoal_bounds") && e.contains(needle), "{e}");
+        }
+        let bad = text.replace("high = [\n    3.1415927,", "high = [\n    -4.0,");
+        assert_ne!(bad, text);
+        let e = RunConfig::from_toml(&bad, "test").unwrap_err().to_string();
+        assert!(
+            e.contains("subgoal_bounds") && e.contains("dimension 0"),
+            "{e}"
+        );
     }
 
     #[test]

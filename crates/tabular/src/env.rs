@@ -116,6 +116,10 @@ impl Env for FourRooms {
         self.spec.max_actions = max_actions;
     }
 
+    fn set_subgoal_bounds(&mut self, bounds: Bounds) {
+        self.spec.subgoal_bounds = bounds;
+    }
+
     /// HAC.md's values where they apply to a tabular learner (lambda 0.3, 20% random actions,
     /// 3 replay goals, gamma 0.98, the test schedule) and H covering the budget. The network
     /// fields keep the paper's values so that a function-approximation agent can run here too;

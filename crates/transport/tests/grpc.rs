@@ -36,6 +36,7 @@ fn run_config() -> RunConfig {
         stop_at: None,
         replay_shards: 2,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     }

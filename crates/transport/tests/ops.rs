@@ -42,6 +42,7 @@ fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
         stop_at: None,
         replay_shards: 2,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     };

@@ -31,6 +31,7 @@ fn start_learner(seed: u64) -> Arc<Learner> {
         stop_at: None,
         replay_shards: 2,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     };

@@ -146,6 +146,7 @@ pub fn bench_run() -> Result<RunConfig> {
         stop_at: None,
         replay_shards: 4,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     })

@@ -29,7 +29,7 @@ pub fn handles(env: &str) -> bool {
 /// The run's grid world, with the run's episode budget.
 fn grid_world(run: &RunConfig) -> Result<FourRooms> {
     let mut env = hac_tabular::four_rooms(&run.env)?;
-    run.apply_budget(&mut env);
+    run.apply_to_env(&mut env);
     Ok(env)
 }
 

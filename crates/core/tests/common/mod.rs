@@ -52,6 +52,10 @@ impl Env for PointEnv {
         self.spec.max_actions = max_actions;
     }
 
+    fn set_subgoal_bounds(&mut self, bounds: Bounds) {
+        self.spec.subgoal_bounds = bounds;
+    }
+
     fn default_config(&self, levels: usize) -> AgentConfig {
         agent_config(levels, 5)
     }

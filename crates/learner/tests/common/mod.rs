@@ -16,6 +16,7 @@ pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
         stop_at: None,
         replay_shards,
         max_actions: None,
+        subgoal_bounds: None,
         agent,
         tabular: None,
     }
