@@ -130,13 +130,8 @@ impl RunConfig {
             source,
         })?;
         if let Some(bounds) = &self.subgoal_bounds {
-            if self.is_tabular() {
-                return invalid(
-                    "subgoal_bounds",
-                    "the grid worlds' subgoals are cells; they take no bounds".into(),
-                );
-            }
-            if let Err(message) = check_subgoal_bounds(bounds, env.spec().subgoal_dim()) {
+            if let Err(message) = check_subgoal_bounds(&self.env, bounds, env.spec().subgoal_dim())
+            {
                 return invalid("subgoal_bounds", message);
             }
         }
@@ -205,9 +200,12 @@ pub fn check_max_actions(n: usize) -> Result<(), String> {
     }
 }
 
-/// Checks a run's `subgoal_bounds` against the environment's `dim` subgoal dimensions; the
+/// Checks a run's `subgoal_bounds` for environment `env` with `dim` subgoal dimensions; the
 /// message says what is wrong.
-pub fn check_subgoal_bounds(bounds: &Bounds, dim: usize) -> Result<(), String> {
+pub fn check_subgoal_bounds(env: &str, bounds: &Bounds, dim: usize) -> Result<(), String> {
+    if hac_tabular::names().contains(&env) {
+        return Err("the grid worlds' subgoals are cells; they take no bounds".into());
+    }
     if bounds.low.len() != dim || bounds.high.len() != dim {
         return Err(format!(
             "{} low and {} high values for {dim} subgoal dimensions (need {dim} of each)",

@@ -85,13 +85,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .map_err(|message| anyhow!("invalid value for `max_actions`: {message}"))?;
     }
     if let Some(bounds) = &file_config.subgoal_bounds {
-        if registry::is_tabular(&env_name) {
-            bail!(
-                "invalid value for `subgoal_bounds`: the grid worlds' subgoals are cells; they \
-                 take no bounds"
-            );
-        }
-        hac_agent::check_subgoal_bounds(bounds, env.spec().subgoal_dim())
+        hac_agent::check_subgoal_bounds(&env_name, bounds, env.spec().subgoal_dim())
             .map_err(|message| anyhow!("invalid value for `subgoal_bounds`: {message}"))?;
         env.set_subgoal_bounds(bounds.clone());
     }
