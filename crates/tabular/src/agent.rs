@@ -404,7 +404,7 @@ impl TabularAgent {
             .map(|s| vec![init; per_slot * s.slots()])
             .collect();
         let levels_len = levels.len();
-        let counters = vec![LevelCounters::default(); levels.len()];
+        let counters = vec![LevelCounters::default(); levels_len];
         let mut agent = Self {
             shared: Arc::new(Shared {
                 grid: grid.clone(),

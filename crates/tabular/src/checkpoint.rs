@@ -110,24 +110,11 @@ impl TabularAgent {
         // Values compared bitwise, so that -0.0 (and anything else not identical) is kept.
         let initial = self.initial_value.to_bits();
         let n = table.iter().filter(|q| q.to_bits() != initial).count();
-        let sparse_bytes = 8 * n;
         let tensors = match palette_of(table) {
-            Some(palette) if coded_bytes(table.len(), palette.len()) < sparse_bytes => {
+            Some(palette) if coded_bytes(table.len(), palette.len()) < 8 * n => {
                 coded(table, &palette)
             }
-            _ => {
-                let (mut index, mut value) = (Vec::with_capacity(4 * n), Vec::with_capacity(4 * n));
-                for (i, &q) in table.iter().enumerate() {
-                    if q.to_bits() != initial {
-                        index.extend_from_slice(&(i as u32).to_le_bytes());
-                        value.extend_from_slice(&q.to_le_bytes());
-                    }
-                }
-                [
-                    ("index", raw(Dtype::U32, n, index)),
-                    ("value", raw(Dtype::F32, n, value)),
-                ]
-            }
+            _ => sparse(table, initial, n),
         };
         let pairs: Vec<String> = self
             .table_metadata(level)
@@ -192,35 +179,17 @@ impl TabularAgent {
             )
         };
         let len = self.tables[level].len();
-        if file.names().contains(&"palette") {
+        let table = if file.names().contains(&"palette") {
             let palette: Vec<f32> = read("palette", Dtype::F32)?
                 .into_iter()
                 .map(f32::from_le_bytes)
                 .collect();
-            let code = tensor("code", Dtype::U8)?;
-            let code = code.data();
-            let table = decode(&palette, code, len)?;
-            self.tables[level] = table;
-            self.rebuild_best(level);
-            return Ok(());
-        }
-        let index = read("index", Dtype::U32)?;
-        let value = read("value", Dtype::F32)?;
-        if index.len() != value.len() {
-            return Err(TableFileError::Tensor {
-                name: "value",
-                problem: format!("{} values for {} indices", value.len(), index.len()),
-            });
-        }
-        let mut table = vec![self.initial_value; len];
-        for (i, v) in index.iter().zip(&value) {
-            let i = u32::from_le_bytes(*i) as usize;
-            let slot = table.get_mut(i).ok_or_else(|| TableFileError::Tensor {
-                name: "index",
-                problem: format!("position {i} is outside the table of {len} entries"),
-            })?;
-            *slot = f32::from_le_bytes(*v);
-        }
+            decode(&palette, tensor("code", Dtype::U8)?.data(), len)?
+        } else {
+            let index = read("index", Dtype::U32)?;
+            let value = read("value", Dtype::F32)?;
+            decode_sparse(&index, &value, self.initial_value, len)?
+        };
         self.tables[level] = table;
         self.rebuild_best(level);
         Ok(())
@@ -233,6 +202,47 @@ fn raw(dtype: Dtype, n: usize, bytes: Vec<u8>) -> Raw {
         shape: vec![n],
         bytes,
     }
+}
+
+/// The `index` and `value` tensors of the `n` entries of `table` whose bits differ from
+/// `initial`.
+fn sparse(table: &[f32], initial: u32, n: usize) -> [(&'static str, Raw); 2] {
+    let (mut index, mut value) = (Vec::with_capacity(4 * n), Vec::with_capacity(4 * n));
+    for (i, &q) in table.iter().enumerate() {
+        if q.to_bits() != initial {
+            index.extend_from_slice(&(i as u32).to_le_bytes());
+            value.extend_from_slice(&q.to_le_bytes());
+        }
+    }
+    [
+        ("index", raw(Dtype::U32, n, index)),
+        ("value", raw(Dtype::F32, n, value)),
+    ]
+}
+
+/// The table of `len` entries, `initial` except at the positions `index` holds `value`s for.
+fn decode_sparse(
+    index: &[[u8; 4]],
+    value: &[[u8; 4]],
+    initial: f32,
+    len: usize,
+) -> Result<Vec<f32>, TableFileError> {
+    if index.len() != value.len() {
+        return Err(TableFileError::Tensor {
+            name: "value",
+            problem: format!("{} values for {} indices", value.len(), index.len()),
+        });
+    }
+    let mut table = vec![initial; len];
+    for (i, v) in index.iter().zip(value) {
+        let i = u32::from_le_bytes(*i) as usize;
+        let slot = table.get_mut(i).ok_or_else(|| TableFileError::Tensor {
+            name: "index",
+            problem: format!("position {i} is outside the table of {len} entries"),
+        })?;
+        *slot = f32::from_le_bytes(*v);
+    }
+    Ok(table)
 }
 
 /// The distinct values of `table` (bitwise) in order of first appearance, if at most
