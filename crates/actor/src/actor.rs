@@ -10,7 +10,7 @@ use hac_core::{GaussianExploration, Hierarchy, Mode, Rng};
 use hac_proto::{ActorRole, IngestItem, Registration, WeightsSnapshot};
 use hac_transport::{ActorLink, EvaluationOf, LinkError};
 
-use crate::{Adder, SnapshotError, SnapshotPolicy};
+use crate::{Adder, SnapshotPolicy};
 
 /// How an actor runs. The run's config (environment, levels, hyperparameters) comes from the
 /// learner at registration; these are the actor's own settings.
@@ -75,8 +75,6 @@ pub enum ActorError {
     Link(LinkError),
     #[error(transparent)]
     Config(#[from] RunConfigError),
-    #[error(transparent)]
-    Snapshot(#[from] SnapshotError),
     #[error("the learner's run config does not match its level dimensions: {0}")]
     Mismatch(String),
     #[error("no usable weights within {0:?}")]
@@ -95,6 +93,9 @@ pub struct ActorSummary {
     pub weights_version: u64,
     /// The learner said the run is over (rather than the actor's own limit or an interrupt).
     pub run_finished: bool,
+    /// Weights snapshots the actor could not use (not finite, or not the run's shape) and
+    /// skipped, acting on the last usable ones.
+    pub unusable_weights: u64,
 }
 
 /// One evaluation the actor ran and reported.
@@ -158,6 +159,7 @@ pub fn run_actor(
             ..ActorSummary::default()
         },
         run,
+        unusable: None,
         on_evaluation,
     };
     let mut actor = Actor {
@@ -191,6 +193,8 @@ struct State<F> {
     /// The learner schedules episodes in turns (`episodes_in_flight` > 0).
     turns: bool,
     summary: ActorSummary,
+    /// The last weights version found unusable (reported once).
+    unusable: Option<u64>,
     on_evaluation: F,
 }
 
@@ -235,14 +239,30 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         }
     }
 
+    /// `snapshot`'s policy. If its weights are unusable (not finite, or not the run's shape),
+    /// the current policy is kept and the snapshot is counted and reported once: an actor never
+    /// stops over what the learner sends. `None` when there is no current policy to keep.
     fn policy_for(
-        &self,
+        &mut self,
         current: Option<SnapshotPolicy>,
         snapshot: &WeightsSnapshot,
-    ) -> Result<SnapshotPolicy, ActorError> {
+    ) -> Option<SnapshotPolicy> {
         match current {
-            Some(p) if p.version() == snapshot.version => Ok(p),
-            _ => Ok(SnapshotPolicy::from_snapshot(snapshot, &self.s.dims)?),
+            Some(p) if p.version() == snapshot.version => Some(p),
+            _ if self.s.unusable == Some(snapshot.version) => current,
+            _ => match SnapshotPolicy::from_snapshot(snapshot, &self.s.dims) {
+                Ok(p) => Some(p),
+                Err(error) => {
+                    self.s.unusable = Some(snapshot.version);
+                    self.s.summary.unusable_weights += 1;
+                    tracing::warn!(
+                        %error,
+                        kept = current.as_ref().map(SnapshotPolicy::version),
+                        "unusable weights from the learner: acting on the last usable ones"
+                    );
+                    current
+                }
+            },
         }
     }
 
@@ -266,7 +286,14 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             let Some(snapshot) = snapshot else {
                 return Ok(());
             };
-            let mut p = self.policy_for(policy.take(), &snapshot)?;
+            let Some(mut p) = self.policy_for(policy.take(), &snapshot) else {
+                // Nothing usable yet: wait for a newer version.
+                let unusable = snapshot.version;
+                if self.wait_weights(|w, _| w.version > unusable)?.is_none() {
+                    return Ok(());
+                }
+                continue;
+            };
             self.s.summary.weights_version = p.version();
             let eval_due = every.is_some_and(|n| {
                 sent > 0 && (sent % n.max(1) == 0 || max == Some(sent)) && last_eval != Some(sent)
@@ -422,13 +449,19 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let mut stale_start = 0;
         loop {
             let Some(snapshot) = self.wait_weights(|w, _| {
-                w.episodes >= next_at && (stale_start == 0 || w.learner_start != stale_start)
+                w.episodes >= next_at
+                    && (stale_start == 0 || w.learner_start != stale_start)
+                    && (w.learner_start, w.version) != last
             })?
             else {
                 return Ok(());
             };
             if (snapshot.learner_start, snapshot.version) != last {
-                let mut policy = SnapshotPolicy::from_snapshot(&snapshot, &self.s.dims)?;
+                let Some(mut policy) = self.policy_for(None, &snapshot) else {
+                    // Reported; evaluate the next version instead.
+                    last = (snapshot.learner_start, snapshot.version);
+                    continue;
+                };
                 self.s.summary.weights_version = policy.version();
                 if self.evaluate(&mut policy, &snapshot)? {
                     last = (snapshot.learner_start, snapshot.version);

@@ -21,6 +21,12 @@ pub enum SnapshotError {
         #[source]
         source: NnError,
     },
+    #[error("weights version {version}, level {level}: a parameter is {value} (not finite)")]
+    NotFinite {
+        version: u64,
+        level: usize,
+        value: f32,
+    },
     #[error(
         "weights version {version}, level {level}: network is for {got:?}, the run needs {expected:?}"
     )]
@@ -40,7 +46,8 @@ pub struct SnapshotPolicy {
 }
 
 impl SnapshotPolicy {
-    /// Decodes every level of `snapshot`, checking it against the run's level dimensions.
+    /// Decodes every level of `snapshot`, checking it against the run's level dimensions and
+    /// that every parameter is finite.
     pub fn from_snapshot(
         snapshot: &WeightsSnapshot,
         dims: &[LevelDims],
@@ -65,6 +72,13 @@ impl SnapshotPolicy {
                         level,
                         source,
                     })?;
+                if let Some(&value) = actor.mlp().tensors().flatten().find(|v| !v.is_finite()) {
+                    return Err(SnapshotError::NotFinite {
+                        version,
+                        level,
+                        value,
+                    });
+                }
                 if actor.dims() != expected {
                     return Err(SnapshotError::Dims {
                         version,

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::Rng;
 
 /// An axis-aligned box `[low_d, high_d]` per dimension.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Bounds {
     pub low: Vec<f32>,
     pub high: Vec<f32>,
@@ -33,6 +33,39 @@ impl Bounds {
 
     pub fn dim(&self) -> usize {
         self.low.len()
+    }
+
+    /// A box of no dimensions (an unknown range, where a box is optional).
+    pub fn is_empty(&self) -> bool {
+        self.low.is_empty()
+    }
+
+    /// The smallest box holding both `self` and `other` (of the same dimension).
+    pub fn hull(&self, other: &Bounds) -> Bounds {
+        debug_assert_eq!(self.dim(), other.dim());
+        Bounds {
+            low: self
+                .low
+                .iter()
+                .zip(&other.low)
+                .map(|(a, b)| a.min(*b))
+                .collect(),
+            high: self
+                .high
+                .iter()
+                .zip(&other.high)
+                .map(|(a, b)| a.max(*b))
+                .collect(),
+        }
+    }
+
+    /// The box widened on each side by `fraction` of each dimension's width plus `absolute`.
+    pub fn widened(&self, fraction: f32, absolute: f32) -> Bounds {
+        let pad = |d: usize| fraction * (self.high[d] - self.low[d]) + absolute;
+        Bounds {
+            low: (0..self.dim()).map(|d| self.low[d] - pad(d)).collect(),
+            high: (0..self.dim()).map(|d| self.high[d] + pad(d)).collect(),
+        }
     }
 
     /// Centre of dimension `d` (the actor's output offset).

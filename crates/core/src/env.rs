@@ -40,6 +40,21 @@ pub struct EnvSpec {
     /// is.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub subgoal_angles: Vec<bool>,
+    /// A box that every observation of an episode started by `reset` stays in (each
+    /// environment derives its own). Not used by the agent: transitions that come from outside
+    /// the process (an actor's batches) are checked against it ([`crate::TransitionLimits`]).
+    /// Empty: unknown, nothing is checked.
+    #[serde(default, skip_serializing_if = "Bounds::is_empty")]
+    pub state_bounds: Bounds,
+    /// A box that holds every end goal the environment draws and every end-goal projection of
+    /// a state in `state_bounds`. Empty: unknown.
+    #[serde(default, skip_serializing_if = "Bounds::is_empty")]
+    pub end_goal_bounds: Bounds,
+    /// A box that holds every subgoal projection of a state in `state_bounds` (a hindsight
+    /// subgoal). It stays the environment's own when a run replaces `subgoal_bounds`. Empty:
+    /// unknown.
+    #[serde(default, skip_serializing_if = "Bounds::is_empty")]
+    pub achieved_subgoal_bounds: Bounds,
     /// Episode budget in primitive actions.
     pub max_actions: usize,
     /// Physics integration steps per primitive action.

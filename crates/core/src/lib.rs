@@ -3,6 +3,8 @@
 //! - [`rng`]: the seeded, portable random generator all components draw from.
 //! - [`bounds`]: boxes (action and subgoal bounds) and the per-dimension goal test.
 //! - [`env`]: the [`Env`] trait and the static [`EnvSpec`] every environment describes.
+//! - [`limits`]: [`TransitionLimits`], what a level's transitions can hold (admission of
+//!   transitions from outside the process).
 //! - [`config`]: [`AgentConfig`], the hyperparameters, validated with errors that name the key.
 //! - [`transition`]: transitions as produced, the [`TransitionSink`] they go to, and [`Batch`].
 //! - [`rollout`]: the hierarchy rollout: one episode through k levels with the behaviour policy,
@@ -11,6 +13,7 @@
 pub mod bounds;
 pub mod config;
 pub mod env;
+pub mod limits;
 pub mod rng;
 pub mod rollout;
 pub mod transition;
@@ -18,6 +21,7 @@ pub mod transition;
 pub use bounds::{Bounds, within, within_goal};
 pub use config::{AgentConfig, ConfigError, Noise};
 pub use env::{Env, EnvSpec, LevelDims, Mode, StateError, horizon_covering};
+pub use limits::{LimitError, TransitionLimits};
 pub use rng::Rng;
 pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
 pub use transition::{

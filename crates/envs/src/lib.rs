@@ -97,6 +97,90 @@ fn wrap_angle(a: f64) -> f64 {
 mod tests {
     use super::*;
 
+    /// Largest `|value| / bound` of a state dimension over `episodes` episodes of bang-bang or
+    /// uniform random control, per dimension; checks every observation, end goal and
+    /// projection against the spec's boxes on the way.
+    fn explore_bounds(name: &str, episodes: u64) -> Vec<f32> {
+        let mut env = make(name).unwrap();
+        let spec = env.spec().clone();
+        let (mut end_goal, mut subgoal) =
+            (vec![0.0; spec.end_goal_dim], vec![0.0; spec.subgoal_dim()]);
+        let mut action = vec![0.0; spec.action_dim()];
+        let mut peak = vec![0f32; spec.state_dim];
+        for seed in 0..episodes {
+            let mut rng = hac_core::Rng::seed_from(seed);
+            env.reset(&mut rng);
+            env.sample_end_goal(&mut rng, hac_core::Mode::Train, &mut end_goal);
+            assert!(
+                spec.end_goal_bounds.contains(&end_goal),
+                "{name}: {end_goal:?}"
+            );
+            let bang_bang = seed % 2 == 0;
+            // Bang-bang controls hold each extreme for a while, which is what spins things up.
+            let hold = 1 + (seed as usize % 7) * 5;
+            for t in 0..spec.max_actions {
+                if t % hold == 0 {
+                    for (d, a) in action.iter_mut().enumerate() {
+                        let (lo, hi) = (spec.action_bounds.low[d], spec.action_bounds.high[d]);
+                        *a = if bang_bang {
+                            if rng.bernoulli(0.5) { lo } else { hi }
+                        } else {
+                            rng.uniform(lo, hi)
+                        };
+                    }
+                }
+                env.step(&action);
+                let state = env.state();
+                assert!(
+                    spec.state_bounds.contains(state),
+                    "{name} seed {seed} step {t}: {state:?} outside {:?}",
+                    spec.state_bounds
+                );
+                for (d, p) in peak.iter_mut().enumerate() {
+                    *p = p.max(state[d].abs() / spec.state_bounds.high[d].abs());
+                }
+                env.project_end_goal(state, &mut end_goal);
+                assert!(
+                    spec.end_goal_bounds.contains(&end_goal),
+                    "{name}: {end_goal:?}"
+                );
+                env.project_subgoal(state, &mut subgoal);
+                assert!(
+                    spec.achieved_subgoal_bounds.contains(&subgoal),
+                    "{name}: {subgoal:?}"
+                );
+                if env.terminated() {
+                    break;
+                }
+            }
+        }
+        peak
+    }
+
+    #[test]
+    fn episodes_stay_inside_the_specs_boxes() {
+        for name in names() {
+            let spec = make(name).unwrap().spec().clone();
+            assert_eq!(spec.state_bounds.dim(), spec.state_dim, "{name}");
+            assert_eq!(spec.end_goal_bounds.dim(), spec.end_goal_dim, "{name}");
+            assert_eq!(
+                spec.achieved_subgoal_bounds.dim(),
+                spec.subgoal_dim(),
+                "{name}"
+            );
+            explore_bounds(name, 6);
+        }
+    }
+
+    #[test]
+    fn ur5_joint_speeds_stay_far_below_their_bound() {
+        // The bound is 50 rad/s; the documented claim is that random control stays below 15.
+        let peak = explore_bounds(Ur5Reacher::NAME, 10);
+        for (d, p) in peak[3..].iter().enumerate() {
+            assert!(p * 50.0 < 15.0, "joint {d}: {} rad/s", p * 50.0);
+        }
+    }
+
     #[test]
     fn registry_makes_every_listed_env_under_its_name() {
         for name in names() {

@@ -95,6 +95,10 @@ impl MountainCar {
 
 fn spec() -> EnvSpec {
     let thresholds = vec![0.01, 0.02];
+    let everywhere = Bounds::new(
+        vec![MIN_X as f32, -MAX_SPEED as f32],
+        vec![MAX_X as f32, MAX_SPEED as f32],
+    );
     EnvSpec {
         name: MountainCar::NAME.to_string(),
         description: "continuous mountain car: rock out of the valley to the flag at x = 0.45 \
@@ -104,13 +108,14 @@ fn spec() -> EnvSpec {
         action_bounds: Bounds::symmetric(&[1.0]),
         end_goal_dim: 2,
         end_goal_thresholds: thresholds.clone(),
-        subgoal_bounds: Bounds::new(
-            vec![MIN_X as f32, -MAX_SPEED as f32],
-            vec![MAX_X as f32, MAX_SPEED as f32],
-        ),
+        subgoal_bounds: everywhere.clone(),
         subgoal_thresholds: thresholds,
         end_goal_angles: Vec::new(),
         subgoal_angles: Vec::new(),
+        // The dynamics clip position and speed to these: states, goals and projections alike.
+        state_bounds: everywhere.clone(),
+        end_goal_bounds: everywhere.clone(),
+        achieved_subgoal_bounds: everywhere,
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: 1,
     }

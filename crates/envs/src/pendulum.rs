@@ -39,6 +39,12 @@ const MAX_TORQUE: f32 = 2.0;
 /// Bound of the angular velocity in goals (velocities are clipped to it before comparing).
 const GOAL_SPEED_LIMIT: f32 = 15.0;
 const MAX_ACTIONS: usize = 1000;
+/// A bound on |qdot| that no episode can pass (the spec's `state_bounds`). Above
+/// `(m g L + max torque) / b` = 69.05 rad/s, damping takes more energy than gravity and the motor
+/// can add, so the speed falls; one semi-implicit step maps `|qdot| <= V` into itself for that
+/// `V`, since `qdot' = qdot (1 - dt b / I) + dt (m g L sin q + tau) / I`. Episodes start at
+/// |qdot| <= 0.05.
+const MAX_SPEED: f32 = 70.0;
 
 /// The physical constants a test may want to change; the geometry stays fixed.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -144,6 +150,9 @@ fn spec() -> EnvSpec {
         subgoal_thresholds: thresholds,
         end_goal_angles: Vec::new(),
         subgoal_angles: Vec::new(),
+        state_bounds: Bounds::symmetric(&[1.0, 1.0, MAX_SPEED]),
+        end_goal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
+        achieved_subgoal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
     }

@@ -64,6 +64,11 @@ const PHYSICS_STEPS_PER_ACTION: usize = 15;
 /// Bound of the joint speeds in subgoals (speeds are clipped to it before comparing).
 const GOAL_SPEED_LIMIT: f32 = 4.0;
 const MAX_ACTIONS: usize = 600;
+/// A bound on every joint speed for the spec's `state_bounds`, far above what the arm reaches:
+/// the servos command at most 5 rad/s and damp every joint (10 N m s/rad from the servo's gain
+/// plus 10 from the joint), and gravity's torque is below 40 N m, so the speeds settle near the
+/// command; random bang-bang control stays below 15 rad/s (tested).
+const MAX_SPEED: f32 = 50.0;
 /// Goal rule (ENVS.md): minimum heights of the elbow and the wrist point, m.
 const MIN_ELBOW_HEIGHT: f64 = 0.05;
 const MIN_WRIST_HEIGHT: f64 = 0.15;
@@ -214,6 +219,16 @@ fn spec() -> EnvSpec {
         // Joint angles are compared along the circle, velocities as numbers.
         end_goal_angles: vec![true; JOINTS],
         subgoal_angles: [[true; JOINTS], [false; JOINTS]].concat(),
+        state_bounds: Bounds::symmetric(&[PI_F32, PI_F32, PI_F32, MAX_SPEED, MAX_SPEED, MAX_SPEED]),
+        end_goal_bounds: Bounds::symmetric(&[PI_F32; JOINTS]),
+        achieved_subgoal_bounds: Bounds::symmetric(&[
+            PI_F32,
+            PI_F32,
+            PI_F32,
+            GOAL_SPEED_LIMIT,
+            GOAL_SPEED_LIMIT,
+            GOAL_SPEED_LIMIT,
+        ]),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
     }

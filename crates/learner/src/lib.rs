@@ -46,8 +46,8 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use hac_agent::{Agent, LevelReport, RoundReport, RunConfig};
-use hac_core::{Batch, EnvSpec, LevelDims, Rng};
-use hac_nn::{LevelLearner, UpdateStats};
+use hac_core::{Batch, EnvSpec, LevelDims, LimitError, Rng, TransitionLimits};
+use hac_nn::{Diverged, LearnerBackup, LevelLearner, UpdateStats};
 use hac_proto::{
     ActorRole, Admission, Evaluation, IngestItemRef, IngestMessage, IngestRef, Registration,
     WeightsSnapshot, WireError, check_batch,
@@ -91,7 +91,13 @@ pub struct LearnerOptions {
     /// How long a granted turn is held for its actor without its episode arriving: an actor
     /// that dies or stalls with a turn delays the others by at most this much.
     pub turn_lease: Duration,
+    /// An actor not heard from for this long is dropped from the registry (and status); if it
+    /// comes back, it registers again (its link does so on `unknown_actor`).
+    pub forget_actors_after: Duration,
 }
+
+/// The default [`LearnerOptions::forget_actors_after`].
+pub const FORGET_ACTORS_AFTER: Duration = Duration::from_secs(600);
 
 impl LearnerOptions {
     /// Defaults for `run`.
@@ -105,6 +111,7 @@ impl LearnerOptions {
             max_actor_messages_per_second: None,
             episodes_in_flight: 0,
             turn_lease: TURN_LEASE,
+            forget_actors_after: FORGET_ACTORS_AFTER,
         }
     }
 }
@@ -148,6 +155,9 @@ pub enum RejectReason {
     InvalidBatch,
     /// NaN or infinity in a float field.
     NotFinite,
+    /// A finite value the environment or the level cannot produce (a state outside the
+    /// environment's box, a reward not in {0, -1, -H}, an episode longer than the budget).
+    OutOfRange,
     LevelOutOfRange,
     UnknownActor,
     StaleIncarnation,
@@ -163,11 +173,12 @@ pub enum RejectReason {
 }
 
 impl RejectReason {
-    pub const ALL: [RejectReason; 12] = [
+    pub const ALL: [RejectReason; 13] = [
         Self::Malformed,
         Self::Oversized,
         Self::InvalidBatch,
         Self::NotFinite,
+        Self::OutOfRange,
         Self::LevelOutOfRange,
         Self::UnknownActor,
         Self::StaleIncarnation,
@@ -185,6 +196,7 @@ impl RejectReason {
             Self::Oversized => "oversized",
             Self::InvalidBatch => "invalid_batch",
             Self::NotFinite => "not_finite",
+            Self::OutOfRange => "out_of_range",
             Self::LevelOutOfRange => "level_out_of_range",
             Self::UnknownActor => "unknown_actor",
             Self::StaleIncarnation => "stale_incarnation",
@@ -229,8 +241,24 @@ pub enum IngestError {
         got: u64,
         expected: u64,
     },
+    #[error("actor `{actor}`: {source}")]
+    OutOfRange {
+        actor: String,
+        #[source]
+        source: LimitError,
+    },
+    #[error(
+        "actor `{actor}`: episode_summary.env_steps {got} is above the episode budget of {max} \
+         primitive actions"
+    )]
+    EpisodeTooLong { actor: String, got: u64, max: u64 },
     #[error("actor `{0}` is an evaluator: evaluators send no transitions")]
     WrongRole(String),
+    #[error(
+        "actor `{0}` is a trainer and an evaluator is registered: only evaluators report \
+         evaluations then"
+    )]
+    TrainerEvaluation(String),
     #[error("evaluation_report.weights_version {0} was never published")]
     UnknownWeightsVersion(u64),
     #[error(
@@ -249,7 +277,8 @@ impl IngestError {
             Self::UnknownActor(_) => RejectReason::UnknownActor,
             Self::StaleIncarnation { .. } => RejectReason::StaleIncarnation,
             Self::SequenceGap { .. } => RejectReason::SequenceGap,
-            Self::WrongRole(_) => RejectReason::WrongRole,
+            Self::OutOfRange { .. } | Self::EpisodeTooLong { .. } => RejectReason::OutOfRange,
+            Self::WrongRole(_) | Self::TrainerEvaluation(_) => RejectReason::WrongRole,
             Self::UnknownWeightsVersion(_) => RejectReason::InvalidBatch,
             Self::StaleWeights { .. } => RejectReason::StaleWeights,
             Self::Finished => RejectReason::Finished,
@@ -370,7 +399,15 @@ struct LevelSlot {
     /// Episodes ingested whose owed updates are all finished and in `weights`.
     covered_episodes: u64,
     last: Option<UpdateStats>,
+    /// Updates undone because they diverged, in all and in a row now.
+    diverged: u64,
+    diverged_in_a_row: u32,
+    last_divergence: Option<Diverged>,
 }
+
+/// Updates undone in a row after which a level counts as failing: health goes `NOT_SERVING`
+/// with the reason until an update of the level succeeds again.
+pub const MAX_DIVERGED_IN_A_ROW: u32 = 10;
 
 #[derive(Debug)]
 struct PublisherState {
@@ -426,8 +463,14 @@ struct Shared {
     dims: Vec<LevelDims>,
     options: LearnerOptions,
     replay: Replay,
+    /// What each level's transitions can hold (admission by meaning).
+    limits: Vec<TransitionLimits>,
+    /// The episode budget: no episode summary reports more env steps.
+    max_episode_actions: u64,
     limiters: Vec<RateLimiter>,
     actors: RwLock<HashMap<String, Arc<Mutex<ActorEntry>>>>,
+    /// The next new actor id's registration order (ids forgotten and back get a new one).
+    next_ordinal: AtomicU64,
     next_incarnation: AtomicU64,
     slots: Vec<Mutex<LevelSlot>>,
     publisher: Mutex<PublisherState>,
@@ -438,6 +481,9 @@ struct Shared {
     turns: Mutex<TurnState>,
     turn_changed: Condvar,
     weights: Published<WeightsSnapshot>,
+    /// Why the learner is unhealthy (a level failing, see [`MAX_DIVERGED_IN_A_ROW`]), or
+    /// `None`; republished whenever that changes.
+    trouble: Published<Option<String>>,
     curve: Mutex<CurveState>,
     counters: Counters,
     /// `[transitions, batches, episodes, env_steps, updates of level 0, 1, ...]` over time.
@@ -479,6 +525,10 @@ pub struct LevelStatus {
     pub transitions_inserted: u64,
     pub last: Option<UpdateStats>,
     pub limiter: RateLimiterStatus,
+    /// Updates undone because they diverged (non-finite or exploding), in all and in a row now
+    /// (a level is failing at [`MAX_DIVERGED_IN_A_ROW`]).
+    pub diverged_updates: u64,
+    pub diverged_in_a_row: u32,
 }
 
 /// A status snapshot of one actor.
@@ -599,6 +649,9 @@ impl Learner {
         if options.turn_lease.is_zero() {
             return option("turn_lease", "must be above 0 seconds");
         }
+        if options.forget_actors_after.is_zero() {
+            return option("forget_actors_after", "must be above 0 seconds");
+        }
         if options
             .max_actor_messages_per_second
             .is_some_and(|r| !(r.is_finite() && r > 0.0))
@@ -618,6 +671,11 @@ impl Learner {
             .map(|l| spec.level_dims(l, config.levels))
             .collect();
         let replay = Replay::for_agent(&spec, config, run.replay_shards);
+        let limits = (0..config.levels)
+            .map(|level| {
+                TransitionLimits::for_level(&spec, level, config.levels, config.horizon as f32)
+            })
+            .collect();
         let mut limiter_config = RateLimiterConfig::for_agent(config);
         limiter_config.error_buffer =
             options.error_buffer_episodes * limiter_config.updates_per_episode.max(1.0);
@@ -659,6 +717,9 @@ impl Learner {
                     completed: l.updates(),
                     covered_episodes: resumed.map_or(0, |r| r.covered_episodes(level)),
                     last: resumed.and_then(|r| r.last_stats(level)),
+                    diverged: 0,
+                    diverged_in_a_row: 0,
+                    last_divergence: None,
                 })
             })
             .collect();
@@ -671,8 +732,11 @@ impl Learner {
             dims,
             options,
             replay,
+            limits,
+            max_episode_actions: spec.max_actions as u64,
             limiters,
             actors: RwLock::default(),
+            next_ordinal: AtomicU64::new(0),
             next_incarnation: AtomicU64::new(resumed.map_or(1, |r| r.next_incarnation)),
             publisher: Mutex::new(PublisherState {
                 // Resumed: the next snapshot's version is above every version of the checkpoint.
@@ -688,6 +752,7 @@ impl Learner {
             turn_changed: Condvar::new(),
             slots,
             weights: Published::default(),
+            trouble: Published::default(),
             curve: Mutex::new(CurveState {
                 points: resumed.map_or_else(Vec::new, |r| r.curve.clone()),
                 last_at: Instant::now(),
@@ -712,6 +777,7 @@ impl Learner {
             },
         });
         shared.publish(false);
+        shared.trouble.publish(Arc::new(None));
         let trainers = learners
             .into_iter()
             .zip(level_rngs)
@@ -760,6 +826,13 @@ impl Learner {
         self.shared.finished.load(Ordering::Acquire)
     }
 
+    /// Why the learner is unhealthy now (`None`: it is not): a level whose last
+    /// [`MAX_DIVERGED_IN_A_ROW`] updates all diverged and were undone. Servers report
+    /// `NOT_SERVING` while it is set; its weights stay the last good ones.
+    pub fn trouble(&self) -> &Published<Option<String>> {
+        &self.shared.trouble
+    }
+
     /// Admits an actor: a fresh incarnation (an actor id registering again supersedes its
     /// earlier incarnation, whose messages are refused from now on), the run's config and a
     /// seed derived from the run's seed, the actor's registration order and the incarnation.
@@ -773,6 +846,7 @@ impl Learner {
         let shared = &self.shared;
         let incarnation = shared.next_incarnation.fetch_add(1, Ordering::Relaxed);
         let now = Instant::now();
+        shared.forget_silent_actors(now);
         let ordinal = {
             let mut actors = shared.actors.write();
             let (ordinal, bucket) = match actors.get(&registration.actor_id) {
@@ -780,7 +854,7 @@ impl Learner {
                     let earlier = earlier.lock();
                     (earlier.ordinal, earlier.bucket.clone())
                 }
-                None => (actors.len() as u64, None),
+                None => (shared.next_ordinal.fetch_add(1, Ordering::Relaxed), None),
             };
             let bucket = bucket.or_else(|| {
                 shared
@@ -1022,6 +1096,20 @@ impl Shared {
         self.actors.read().get(id).cloned()
     }
 
+    /// Drops every actor not heard from for `forget_actors_after` (at registrations and status
+    /// reads, so the registry stays bounded by the actors alive lately).
+    fn forget_silent_actors(&self, now: Instant) {
+        let limit = self.options.forget_actors_after;
+        let silent = |a: &Arc<Mutex<ActorEntry>>| now.duration_since(a.lock().last_seen) >= limit;
+        if !self.actors.read().values().any(silent) {
+            return;
+        }
+        let mut actors = self.actors.write();
+        let before = actors.len();
+        actors.retain(|_, a| !silent(a));
+        tracing::info!(forgotten = before - actors.len(), after = ?limit, "silent actors forgotten");
+    }
+
     fn ingest(&self, msg: &IngestRef<'_>) -> Result<Stored, IngestError> {
         let counters = &self.counters;
         counters.messages.fetch_add(1, Ordering::Relaxed);
@@ -1066,6 +1154,12 @@ impl Shared {
                 batch,
             } => {
                 check_batch(level, batch, &self.dims, self.options.max_batch_transitions)?;
+                self.limits[level]
+                    .check(&batch)
+                    .map_err(|source| IngestError::OutOfRange {
+                        actor: msg.actor_id.to_string(),
+                        source,
+                    })?;
                 let table = self.replay.table(level);
                 // Each actor starts at its own shard and moves on by one per batch: writers
                 // rarely meet, and one actor alone still fills every shard.
@@ -1088,6 +1182,13 @@ impl Shared {
                 success,
                 weights_version,
             } => {
+                if env_steps > self.max_episode_actions {
+                    return Err(IngestError::EpisodeTooLong {
+                        actor: msg.actor_id.to_string(),
+                        got: env_steps,
+                        max: self.max_episode_actions,
+                    });
+                }
                 actor.episodes += 1;
                 actor.env_steps += env_steps;
                 actor.weights_version = actor.weights_version.max(weights_version);
@@ -1257,6 +1358,14 @@ impl Shared {
                 });
             }
             actor.last_seen = Instant::now();
+            // A trainer may evaluate itself (`--eval-every`) while the run has no evaluator;
+            // once one is registered, the curve is the evaluators' alone.
+            if actor.role == ActorRole::Trainer {
+                drop(actor);
+                if self.has_evaluator() {
+                    return Err(IngestError::TrainerEvaluation(evaluation.actor_id.clone()));
+                }
+            }
         }
         if evaluation.learner_start != 0 && evaluation.learner_start != self.learner_start {
             return Err(IngestError::StaleWeights {
@@ -1357,6 +1466,7 @@ impl Shared {
         let limiter = &self.limiters[level];
         let table = self.replay.table(level);
         let every = self.options.publish_every_updates;
+        let mut backup = LearnerBackup::default();
         loop {
             if self.snapshots.requested[level].load(Ordering::Acquire) {
                 self.serve_snapshot(level, &learner, &rng);
@@ -1374,11 +1484,37 @@ impl Shared {
             table
                 .sample(&mut rng, &mut batch)
                 .expect("an update is granted only once the table holds a batch");
-            let stats = learner.update(&batch);
+            // A diverged update is undone and still counts as done: the schedule goes on with
+            // the last good weights, which are all that is ever published.
+            let outcome = learner.update_or_undo(&batch, &mut backup);
             {
                 let mut slot = self.slots[level].lock();
                 slot.completed += 1;
-                slot.last = Some(stats);
+                match outcome {
+                    Ok(stats) => {
+                        slot.last = Some(stats);
+                        if slot.diverged_in_a_row >= MAX_DIVERGED_IN_A_ROW {
+                            tracing::info!(level, "level recovered: an update succeeded");
+                            slot.diverged_in_a_row = 0;
+                            drop(slot);
+                            self.report_trouble();
+                            slot = self.slots[level].lock();
+                        }
+                        slot.diverged_in_a_row = 0;
+                    }
+                    Err(diverged) => {
+                        slot.diverged += 1;
+                        slot.diverged_in_a_row += 1;
+                        slot.last_divergence = Some(diverged);
+                        let in_a_row = slot.diverged_in_a_row;
+                        tracing::warn!(level, %diverged, in_a_row, "update undone");
+                        if in_a_row == MAX_DIVERGED_IN_A_ROW {
+                            drop(slot);
+                            self.report_trouble();
+                            slot = self.slots[level].lock();
+                        }
+                    }
+                }
                 let status = limiter.status();
                 let caught_up = status.updates == slot.completed && status.deficit < 1.0;
                 if caught_up || slot.completed % every == 0 {
@@ -1400,6 +1536,28 @@ impl Shared {
             self.maybe_publish();
         }
         (learner, rng)
+    }
+
+    /// Publishes why the learner is unhealthy (the first failing level), if that changed.
+    fn report_trouble(&self) {
+        let trouble = self.slots.iter().enumerate().find_map(|(level, slot)| {
+            let slot = slot.lock();
+            (slot.diverged_in_a_row >= MAX_DIVERGED_IN_A_ROW).then(|| {
+                let last = slot
+                    .last_divergence
+                    .map_or_else(String::new, |d| format!(": {d}"));
+                format!(
+                    "level {level}: the last {} updates diverged and were undone{last}",
+                    slot.diverged_in_a_row
+                )
+            })
+        });
+        if self.trouble.latest().as_deref() != Some(&trouble) {
+            if let Some(why) = &trouble {
+                tracing::error!(reason = %why, "learner unhealthy");
+            }
+            self.trouble.publish(Arc::new(trouble));
+        }
     }
 
     /// Publishes a snapshot if coverage grew, every level has fresh weights, or some level's
@@ -1502,6 +1660,7 @@ impl Shared {
     }
 
     fn status(&self) -> LearnerStatus {
+        self.forget_silent_actors(Instant::now());
         let c = &self.counters;
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
         // One cut of what ingest inserts and counts together.
@@ -1531,6 +1690,8 @@ impl Shared {
                     transitions_inserted: inserted,
                     last: slot.last,
                     limiter: self.limiters[level].status(),
+                    diverged_updates: slot.diverged,
+                    diverged_in_a_row: slot.diverged_in_a_row,
                 }
             })
             .collect();

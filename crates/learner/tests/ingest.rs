@@ -463,3 +463,230 @@ fn the_message_rate_limit_is_per_actor_and_survives_reregistration() {
         "{e}"
     );
 }
+
+/// A batch of `len` transitions at `level` whose `field` holds `value` everywhere.
+fn batch_with(learner: &Learner, level: usize, field: &str, value: f32) -> IngestItem {
+    let mut item = batch(learner, level, 8);
+    if let IngestItem::Batch(b) = &mut item {
+        let values = match field {
+            "states" => &mut b.batch.states,
+            "next_states" => &mut b.batch.next_states,
+            "goals" => &mut b.batch.goals,
+            "actions" => &mut b.batch.actions,
+            _ => &mut b.batch.rewards,
+        };
+        values.fill(value);
+    }
+    item
+}
+
+#[test]
+fn finite_but_impossible_values_are_refused_by_meaning() {
+    // The poison batch of the robustness review (3e38 everywhere: finite, so it passed the
+    // shape checks, and its first forward pass made every weight NaN) and its milder kin.
+    let learner = start(100);
+    let inc = learner
+        .register(registration("hostile", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let cases = [
+        (0, "states", 3e38),
+        (0, "states", 1e30),
+        (1, "next_states", -50.0),
+        (0, "goals", 1e6),
+        (1, "goals", 4.0),
+        (0, "actions", 2.5),
+        (1, "actions", -20.0),
+        (0, "rewards", -1e20),
+        (1, "rewards", -0.5),
+    ];
+    for (level, field, value) in cases {
+        let e = learner
+            .ingest(&msg(
+                "hostile",
+                inc,
+                1,
+                batch_with(&learner, level, field, value),
+            ))
+            .unwrap_err();
+        assert!(matches!(e, IngestError::OutOfRange { .. }), "{field}: {e}");
+        assert_eq!(e.reason(), RejectReason::OutOfRange);
+        let text = e.to_string();
+        assert!(
+            text.contains("hostile") && text.contains(&format!("batch.{field}[0]")),
+            "{text}"
+        );
+    }
+    assert_eq!(
+        rejected(&learner, RejectReason::OutOfRange),
+        cases.len() as u64
+    );
+    assert_eq!(stored(&learner), 0);
+    // Values at the edge of what the task produces pass, and sequence 1 was never used up.
+    learner
+        .ingest(&msg(
+            "hostile",
+            inc,
+            1,
+            batch_with(&learner, 0, "next_states", 1.0),
+        ))
+        .unwrap();
+    learner
+        .ingest(&msg(
+            "hostile",
+            inc,
+            2,
+            batch_with(&learner, 1, "rewards", -32.0),
+        ))
+        .unwrap();
+    assert_eq!(stored(&learner), 16);
+    learner.shutdown();
+}
+
+#[test]
+fn an_episode_longer_than_the_budget_is_refused_and_counters_stay_exact() {
+    let learner = start(100);
+    let inc = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let long = IngestItem::Episode {
+        env_steps: u64::MAX,
+        success: false,
+        weights_version: 1,
+    };
+    let e = learner.ingest(&msg("a", inc, 1, long)).unwrap_err();
+    assert!(
+        matches!(e, IngestError::EpisodeTooLong { max: 1000, .. }),
+        "{e}"
+    );
+    learner.ingest(&msg("a", inc, 1, episode())).unwrap();
+    let status = learner.status();
+    assert_eq!((status.episodes, status.env_steps), (1, 10));
+    assert_eq!(status.actors[0].env_steps, 10);
+    learner.shutdown();
+}
+
+#[test]
+fn trainers_report_evaluations_only_while_no_evaluator_is_registered() {
+    let learner = start(100);
+    let trainer = learner
+        .register(registration("t", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let report = |id: &str, incarnation| Evaluation {
+        actor_id: id.into(),
+        incarnation,
+        weights_version: 1,
+        learner_start: 0,
+        episodes: 10,
+        successes: 10,
+    };
+    // Alone, a trainer evaluates itself (`--eval-every`).
+    learner.report_evaluation(&report("t", trainer)).unwrap();
+    let evaluator = learner
+        .register(registration("e", ActorRole::Evaluator))
+        .unwrap()
+        .incarnation;
+    let e = learner
+        .report_evaluation(&report("t", trainer))
+        .unwrap_err();
+    assert!(matches!(e, IngestError::TrainerEvaluation(_)), "{e}");
+    assert_eq!(e.reason(), RejectReason::WrongRole);
+    assert_eq!(
+        learner.curve().len(),
+        1,
+        "the refused report is not on the curve"
+    );
+    learner.report_evaluation(&report("e", evaluator)).unwrap();
+    assert_eq!(learner.curve().len(), 2);
+    learner.shutdown();
+}
+
+#[test]
+fn a_learner_whose_updates_explode_publishes_only_finite_weights_and_says_why() {
+    // A learning rate of 1e30 makes every update explode: each is undone, and after ten in a
+    // row the learner reports trouble (servers go NOT_SERVING) instead of publishing NaN.
+    let mut config = run(100);
+    config.agent.critic_lr = 1e30;
+    config.agent.actor_lr = 1e30;
+    let options = LearnerOptions::for_run(&config);
+    let learner = Learner::start(config, options).unwrap();
+    let inc = learner
+        .register(registration("a", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    let mut seq = 0;
+    let mut send = |item| {
+        seq += 1;
+        learner.ingest(&msg("a", inc, seq, item)).unwrap();
+    };
+    for _ in 0..6 {
+        let mut item = batch(&learner, 0, 8);
+        if let IngestItem::Batch(b) = &mut item {
+            // Varied inputs, so that gradients are not all zero.
+            for (i, s) in b.batch.states.iter_mut().enumerate() {
+                *s = ((i % 7) as f32 - 3.0) / 3.0;
+            }
+        }
+        send(item);
+        send(batch(&learner, 1, 8));
+        send(episode());
+    }
+    let trouble = learner
+        .trouble()
+        .wait_for(Duration::from_secs(20), |t| t.is_some())
+        .expect("trouble is reported");
+    let why = (*trouble).clone().unwrap();
+    assert!(why.contains("diverged and were undone"), "{why}");
+    let status = learner.status();
+    assert!(
+        status.levels.iter().any(|l| l.diverged_in_a_row >= 10),
+        "{status:?}"
+    );
+    let weights = learner.weights().latest().unwrap();
+    for level in &weights.levels {
+        let actor = hac_nn::Actor::from_safetensors(level).unwrap();
+        assert!(actor.mlp().tensors().flatten().all(|v| v.is_finite()));
+    }
+    learner.shutdown();
+}
+
+#[test]
+fn actors_not_heard_from_are_forgotten() {
+    let config = run(100);
+    let mut options = LearnerOptions::for_run(&config);
+    options.forget_actors_after = Duration::from_millis(300);
+    let learner = Learner::start(config, options).unwrap();
+    for i in 0..200 {
+        learner
+            .register(registration(&format!("gone-{i}"), ActorRole::Trainer))
+            .unwrap();
+    }
+    let alive = learner
+        .register(registration("alive", ActorRole::Trainer))
+        .unwrap()
+        .incarnation;
+    assert_eq!(learner.status().actors.len(), 201);
+    for seq in 1..=4 {
+        std::thread::sleep(Duration::from_millis(100));
+        learner
+            .ingest(&msg("alive", alive, seq, episode()))
+            .unwrap();
+    }
+    let ids: Vec<String> = learner
+        .status()
+        .actors
+        .into_iter()
+        .map(|a| a.actor_id)
+        .collect();
+    assert_eq!(ids, ["alive"]);
+    // A forgotten actor is unknown, and registers again.
+    let e = learner.ingest(&msg("gone-0", 1, 1, episode())).unwrap_err();
+    assert!(matches!(e, IngestError::UnknownActor(_)), "{e}");
+    learner
+        .register(registration("gone-0", ActorRole::Trainer))
+        .unwrap();
+    assert_eq!(learner.status().actors.len(), 2);
+    learner.shutdown();
+}

@@ -46,6 +46,25 @@ impl Adam {
         self.steps
     }
 
+    /// The step count and both moments of every tensor (m then v, tensor by tensor): what a
+    /// step changes, for [`crate::learner::LearnerBackup`].
+    pub(crate) fn state_mut(&mut self) -> (&mut u64, impl Iterator<Item = &mut [f32]>) {
+        let moments = self
+            .moments
+            .iter_mut()
+            .flat_map(|(m, v)| [m.as_mut_slice(), v.as_mut_slice()]);
+        (&mut self.steps, moments)
+    }
+
+    /// [`Adam::state_mut`], read-only.
+    pub(crate) fn state(&self) -> (u64, impl Iterator<Item = &[f32]>) {
+        let moments = self
+            .moments
+            .iter()
+            .flat_map(|(m, v)| [m.as_slice(), v.as_slice()]);
+        (self.steps, moments)
+    }
+
     /// One step on every `(parameters, gradient)` pair, in the order given at construction.
     pub fn step<'a>(&mut self, tensors: impl IntoIterator<Item = (&'a mut [f32], &'a [f32])>) {
         self.steps += 1;

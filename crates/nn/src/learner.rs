@@ -83,6 +83,31 @@ pub struct UpdateStats {
     pub mean_target: f32,
 }
 
+/// The largest parameter magnitude an update may leave: far beyond what a healthy network of
+/// this size holds (its weights start below 1 and Adam moves each by about the learning rate
+/// per update), so reaching it means the update exploded.
+pub const PARAMETER_LIMIT: f32 = 1e6;
+
+/// An update that was undone: what was wrong after it.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("the update diverged ({what} = {value:e}); it was undone")]
+pub struct Diverged {
+    /// `critic loss`, `actor loss`, `mean Q`, `mean target`, `actor parameter` or
+    /// `critic parameter`.
+    pub what: &'static str,
+    /// The first offending value.
+    pub value: f32,
+}
+
+/// A copy of everything an update changes (networks, optimiser moments and step counts, target
+/// networks), so that a diverged update can be undone. Keep one per level and reuse it: after
+/// the first save, saving allocates nothing.
+#[derive(Debug, Clone, Default)]
+pub struct LearnerBackup {
+    values: Vec<f32>,
+    steps: [u64; 2],
+}
+
 /// Slowly-moving copies of actor and critic that the target `y` bootstraps from.
 #[derive(Debug, Clone)]
 struct Targets {
@@ -233,6 +258,110 @@ impl LevelLearner {
             mean_q,
             mean_target,
         }
+    }
+
+    /// [`update`](Self::update), undone if it diverged: when a statistic is not finite or a
+    /// parameter is not finite or above [`PARAMETER_LIMIT`], the learner is put back as it was
+    /// before (networks, optimisers and their step counts, targets) and the error says what
+    /// was wrong. `backup` is scratch space kept between calls.
+    ///
+    /// Healthy updates are bit-identical to [`update`](Self::update)'s.
+    pub fn update_or_undo(
+        &mut self,
+        batch: &Batch,
+        backup: &mut LearnerBackup,
+    ) -> Result<UpdateStats, Diverged> {
+        self.save(backup);
+        let stats = self.update(batch);
+        match self.divergence(&stats) {
+            None => Ok(stats),
+            Some(diverged) => {
+                self.restore(backup);
+                Err(diverged)
+            }
+        }
+    }
+
+    /// What is wrong after an update that produced `stats`, if anything.
+    fn divergence(&self, stats: &UpdateStats) -> Option<Diverged> {
+        let statistics = [
+            ("critic loss", stats.critic_loss),
+            ("actor loss", stats.actor_loss),
+            ("mean Q", stats.mean_q),
+            ("mean target", stats.mean_target),
+        ];
+        if let Some(&(what, value)) = statistics.iter().find(|(_, v)| !v.is_finite()) {
+            return Some(Diverged { what, value });
+        }
+        let networks = [
+            ("actor parameter", self.actor.mlp()),
+            ("critic parameter", self.critic.mlp()),
+        ];
+        for (what, mlp) in networks {
+            let bad = mlp
+                .tensors()
+                .flatten()
+                .find(|v| !v.is_finite() || v.abs() > PARAMETER_LIMIT);
+            if let Some(&value) = bad {
+                return Some(Diverged { what, value });
+            }
+        }
+        None
+    }
+
+    /// Everything an update changes, as mutable slices in a fixed order, and the two step
+    /// counts.
+    fn state_mut(&mut self) -> ([&mut u64; 2], Vec<&mut [f32]>) {
+        let (actor_steps, actor_moments) = self.actor_opt.state_mut();
+        let (critic_steps, critic_moments) = self.critic_opt.state_mut();
+        let mut slices: Vec<&mut [f32]> = self.actor.mlp_mut().tensors_mut().collect();
+        slices.extend(self.critic.mlp_mut().tensors_mut());
+        slices.extend(actor_moments);
+        slices.extend(critic_moments);
+        if let Some(t) = &mut self.targets {
+            slices.extend(t.actor.mlp_mut().tensors_mut());
+            slices.extend(t.critic.mlp_mut().tensors_mut());
+        }
+        ([actor_steps, critic_steps], slices)
+    }
+
+    /// Copies everything an update changes into `backup`.
+    pub fn save(&self, backup: &mut LearnerBackup) {
+        let (actor_steps, actor_moments) = self.actor_opt.state();
+        let (critic_steps, critic_moments) = self.critic_opt.state();
+        let targets = self
+            .targets
+            .iter()
+            .flat_map(|t| t.actor.mlp().tensors().chain(t.critic.mlp().tensors()));
+        let slices = self
+            .actor
+            .mlp()
+            .tensors()
+            .chain(self.critic.mlp().tensors())
+            .chain(actor_moments)
+            .chain(critic_moments)
+            .chain(targets);
+        backup.values.clear();
+        for slice in slices {
+            backup.values.extend_from_slice(slice);
+        }
+        backup.steps = [actor_steps, critic_steps];
+    }
+
+    /// Puts back what [`save`](Self::save) copied into `backup`.
+    ///
+    /// Panics if `backup` was saved from a learner of another shape.
+    pub fn restore(&mut self, backup: &LearnerBackup) {
+        let (steps, slices) = self.state_mut();
+        *steps[0] = backup.steps[0];
+        *steps[1] = backup.steps[1];
+        let mut at = 0;
+        for slice in slices {
+            let n = slice.len();
+            slice.copy_from_slice(&backup.values[at..at + n]);
+            at += n;
+        }
+        assert_eq!(at, backup.values.len(), "learner: backup of another shape");
     }
 
     /// Sets `self.y` to the clipped bootstrap targets; returns their mean.
@@ -456,6 +585,54 @@ mod tests {
             };
         }
         b
+    }
+
+    #[test]
+    fn a_diverged_update_is_undone_and_healthy_ones_match_update() {
+        for tau in [None, Some(0.05)] {
+            let mut rng = Rng::seed_from(5);
+            let mut guarded = LevelLearner::new(config(tau), &mut rng);
+            let mut plain = guarded.clone();
+            let mut backup = LearnerBackup::default();
+            for _ in 0..5 {
+                let batch = random_batch(&mut rng, 64);
+                let stats = guarded.update_or_undo(&batch, &mut backup).unwrap();
+                assert_eq!(stats, plain.update(&batch));
+            }
+            assert_eq!(guarded.to_safetensors(), plain.to_safetensors());
+
+            // A NaN reaches the loss.
+            let mut poison = random_batch(&mut rng, 64);
+            poison.states[7] = f32::NAN;
+            let before = guarded.to_safetensors();
+            let e = guarded.update_or_undo(&poison, &mut backup).unwrap_err();
+            assert!(e.value.is_nan(), "{e}");
+            assert_eq!(guarded.to_safetensors(), before, "undone to the last byte");
+            assert_eq!(guarded.updates(), 5);
+
+            // An exploding step: the same learner with a learning rate of 1e30.
+            let mut exploding = guarded.clone();
+            let lens: Vec<usize> = exploding.actor.mlp().tensors().map(<[f32]>::len).collect();
+            exploding.actor_opt = Adam::new(1e30, lens);
+            let before = exploding.to_safetensors();
+            let e = exploding
+                .update_or_undo(&random_batch(&mut rng, 64), &mut backup)
+                .unwrap_err();
+            assert!(
+                e.what.ends_with("parameter")
+                    && (!e.value.is_finite() || e.value.abs() > PARAMETER_LIMIT),
+                "{e}"
+            );
+            assert_eq!(exploding.to_safetensors(), before);
+
+            // ... and the guarded learner goes on as if the poison never came.
+            let batch = random_batch(&mut rng, 64);
+            assert_eq!(
+                guarded.update_or_undo(&batch, &mut backup).unwrap(),
+                plain.update(&batch)
+            );
+            assert_eq!(guarded.to_safetensors(), plain.to_safetensors());
+        }
     }
 
     #[test]

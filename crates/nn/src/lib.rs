@@ -32,6 +32,8 @@ pub use actor::Actor;
 pub use adam::Adam;
 pub use critic::Critic;
 pub use error::NnError;
-pub use learner::{LearnerConfig, LevelLearner, UpdateStats};
+pub use learner::{
+    Diverged, LearnerBackup, LearnerConfig, LevelLearner, PARAMETER_LIMIT, UpdateStats,
+};
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
 pub use policy::Policy;

@@ -386,6 +386,13 @@ pub fn learner_metrics(learner: &Learner) -> String {
     );
     per_level(
         &mut m,
+        "hac_learner_diverged_updates_total",
+        Counter,
+        "Updates undone because they diverged (non-finite or exploding loss or weights).",
+        &|l| Some(levels[l].diverged_updates as f64),
+    );
+    per_level(
+        &mut m,
         "hac_learner_ingest_wait_seconds_total",
         Counter,
         "Time ingest waited for room (backpressure).",

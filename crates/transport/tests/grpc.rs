@@ -307,6 +307,9 @@ impl Decoder for RawCodec {
 enum Bad {
     WrongDimensions,
     NotFinite,
+    /// Finite but impossible: the poison batch (3e38 everywhere) that once made every weight
+    /// NaN.
+    Poison,
     LevelOutOfRange,
     UnknownActor,
     StaleIncarnation,
@@ -317,9 +320,10 @@ enum Bad {
 }
 
 impl Bad {
-    const ALL: [Bad; 9] = [
+    const ALL: [Bad; 10] = [
         Bad::WrongDimensions,
         Bad::NotFinite,
+        Bad::Poison,
         Bad::LevelOutOfRange,
         Bad::UnknownActor,
         Bad::StaleIncarnation,
@@ -334,6 +338,7 @@ impl Bad {
         match self {
             Bad::WrongDimensions => (Code::InvalidArgument, RejectReason::InvalidBatch),
             Bad::NotFinite => (Code::InvalidArgument, RejectReason::NotFinite),
+            Bad::Poison => (Code::InvalidArgument, RejectReason::OutOfRange),
             Bad::LevelOutOfRange => (Code::InvalidArgument, RejectReason::LevelOutOfRange),
             Bad::UnknownActor => (Code::NotFound, RejectReason::UnknownActor),
             Bad::StaleIncarnation => (Code::FailedPrecondition, RejectReason::StaleIncarnation),
@@ -397,6 +402,17 @@ async fn provoke(
             batch.states.pop();
         }
         Bad::NotFinite => batch.rewards[3] = f32::NAN,
+        Bad::Poison => {
+            for field in [
+                &mut batch.states,
+                &mut batch.actions,
+                &mut batch.rewards,
+                &mut batch.next_states,
+                &mut batch.goals,
+            ] {
+                field.fill(3e38);
+            }
+        }
         Bad::LevelOutOfRange => batch.level = 7,
         // Above the server's 1 MiB limit.
         Bad::Oversized => batch.states = vec![0.0; 300_000],

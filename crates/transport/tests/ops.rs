@@ -31,10 +31,10 @@ use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
 
 const WAIT: Duration = Duration::from_secs(20);
 
-fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
+fn run_config() -> RunConfig {
     let mut agent = hac_envs::make("mountain-car").unwrap().default_config(2);
     agent.test_episodes = 2;
-    let run = RunConfig {
+    RunConfig {
         env: "mountain-car".into(),
         levels: 2,
         seed: 0,
@@ -45,7 +45,11 @@ fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
         subgoal_bounds: None,
         agent,
         tabular: None,
-    };
+    }
+}
+
+fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
+    let run = run_config();
     let mut learner_options = LearnerOptions::for_run(&run);
     options(&mut learner_options);
     Arc::new(Learner::start(run, learner_options).unwrap())
@@ -309,6 +313,78 @@ fn health_is_serving_until_the_run_finishes_and_reflection_lists_the_services() 
                 .into_inner(),
         );
         assert_eq!(status.state, "draining");
+        server.stop().await;
+    });
+}
+
+#[test]
+fn health_is_not_serving_while_a_level_fails_and_status_says_why() {
+    // A learning rate of 1e30: every update explodes and is undone; after ten in a row the
+    // learner is unhealthy (never publishing what the updates made).
+    let mut run = run_config();
+    run.agent.actor_lr = 1e30;
+    run.agent.critic_lr = 1e30;
+    run.agent.batch_size = 8;
+    let options = LearnerOptions::for_run(&run);
+    let learner = Arc::new(Learner::start(run, options).unwrap());
+    let runtime = runtime();
+    runtime.block_on(async {
+        let server = Server::start(learner.clone(), ServerSecurity::default()).await;
+        let url = format!("http://{}", server.addr);
+        assert_eq!(
+            health(channel(&url, None, None).await, "").await.unwrap(),
+            ServingStatus::Serving
+        );
+        let incarnation = learner.register(registration("a")).unwrap().incarnation;
+        let mut sequence = 0;
+        let started = Instant::now();
+        loop {
+            for item in [
+                batch_item(&learner, 0, 8),
+                batch_item(&learner, 1, 8),
+                episode(),
+            ] {
+                sequence += 1;
+                learner
+                    .ingest(&hac_proto::IngestMessage {
+                        actor_id: "a".into(),
+                        incarnation,
+                        sequence,
+                        item,
+                    })
+                    .unwrap();
+            }
+            if health(channel(&url, None, None).await, "hac.v1.Learner")
+                .await
+                .unwrap()
+                == ServingStatus::NotServing
+            {
+                break;
+            }
+            assert!(started.elapsed() < WAIT, "still serving");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let mut client = pb::status_client::StatusClient::new(channel(&url, None, None).await);
+        let status = learner_of(
+            client
+                .get_status(pb::GetStatusRequest::default())
+                .await
+                .unwrap()
+                .into_inner(),
+        );
+        assert_eq!(status.state, "unhealthy");
+        assert!(
+            status.trouble.contains("diverged and were undone"),
+            "{}",
+            status.trouble
+        );
+        assert!(
+            status
+                .level_status
+                .iter()
+                .any(|l| l.diverged_in_a_row >= 10)
+        );
+        learner.finish("test");
         server.stop().await;
     });
 }

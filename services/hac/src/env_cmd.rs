@@ -77,6 +77,20 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
             angle_dims(&spec.subgoal_angles)
         );
     }
+    // The boxes the learner admits transitions by (each widened by 10% of its width).
+    for (label, bounds) in [
+        ("state box (admission)    ", &spec.state_bounds),
+        ("end-goal box (admission) ", &spec.end_goal_bounds),
+        ("achieved subgoal box     ", &spec.achieved_subgoal_bounds),
+    ] {
+        if !bounds.is_empty() {
+            println!(
+                "  {label} low [{}]  high [{}]",
+                fmt(&bounds.low),
+                fmt(&bounds.high)
+            );
+        }
+    }
     println!(
         "  max primitive actions     {}{}",
         spec.max_actions,

@@ -217,6 +217,9 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
         s.seed,
         duration(s.uptime_seconds)
     );
+    if !s.trouble.is_empty() {
+        let _ = writeln!(out, "trouble: {}", s.trouble);
+    }
     let _ = writeln!(
         out,
         "weights v{}  episodes {}/{} (success {})  env steps {}  transitions {}  batches {}  duplicates {}",
@@ -254,6 +257,7 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
             "deficit",
             "trainer wait",
             "ingest waits",
+            "diverged",
         ]
         .map(String::from)
         .to_vec(),
@@ -273,6 +277,7 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
             format!("{:.1}", l.update_deficit),
             duration(l.trainer_wait_seconds),
             format!("{} ({})", l.ingest_waits, duration(l.ingest_wait_seconds)),
+            l.diverged_updates.to_string(),
         ]);
     }
     table(&mut out, &rows);

@@ -117,6 +117,10 @@ pub struct LearnerArgs {
     /// (one that died or stalls delays the others at most this long); above the longest episode.
     #[arg(long, value_name = "SECS", default_value = "60", value_parser = seconds)]
     pub turn_lease: Duration,
+    /// Seconds after which an actor not heard from (no message, turn request or evaluation) is
+    /// dropped from the registry and from status; if it comes back it registers again.
+    #[arg(long, value_name = "SECS", default_value = "600", value_parser = seconds)]
+    pub forget_actors_after: Duration,
     /// How far ingest may run ahead of training before actors are held back, in episodes'
     /// worth of updates (the rate limiter's error buffer) [default: 2].
     #[arg(long, value_parser = at_least_one)]
@@ -231,6 +235,7 @@ impl LearnerArgs {
             options.episodes_in_flight = n;
         }
         options.turn_lease = self.turn_lease;
+        options.forget_actors_after = self.forget_actors_after;
         if let Some(x) = self.error_buffer_episodes {
             options.error_buffer_episodes = x;
         }

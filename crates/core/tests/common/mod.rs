@@ -30,6 +30,9 @@ impl PointEnv {
             subgoal_thresholds: vec![threshold; dim],
             end_goal_angles: Vec::new(),
             subgoal_angles: Vec::new(),
+            state_bounds: Bounds::default(),
+            end_goal_bounds: Bounds::default(),
+            achieved_subgoal_bounds: Bounds::default(),
             max_actions,
             physics_steps_per_action: 1,
         };

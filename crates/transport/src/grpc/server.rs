@@ -107,8 +107,8 @@ impl LearnerGrpc {
 }
 
 /// Serves `learner` on `listener` until `shutdown` completes: `hac.v1.Learner`, `hac.v1.Status`,
-/// health and reflection, behind `options.security`. Health is `SERVING` from the start until
-/// the run is finished (the learner then serves only its final weights) or `shutdown`
+/// health and reflection, behind `options.security`. Health is `SERVING` from the start (and
+/// `NOT_SERVING` while [`Learner::trouble`] says why) until the run is finished (the learner then serves only its final weights) or `shutdown`
 /// completes. Then ends every open stream, stops accepting connections and waits up to
 /// `options.drain_timeout` for the open ones to close.
 pub async fn serve(
@@ -139,11 +139,25 @@ pub async fn serve(
     let reporter = {
         let health = health.clone();
         let mut weights = learner.weights().subscribe();
+        let mut trouble = learner.trouble().subscribe();
         async move {
-            tokio::select! {
-                // An error: the weights cell is gone, so is the run.
-                _ = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)) => {}
-                () = until_set(&mut stopping) => {}
+            loop {
+                let healthy = tokio::select! {
+                    // An error: the weights cell is gone, so is the run.
+                    () = async {
+                        let _ = weights.wait_for(|w| w.as_ref().is_some_and(|w| w.run_finished)).await;
+                    } => break,
+                    () = until_set(&mut stopping) => break,
+                    // A failing level (its updates diverge and are undone): not serving until
+                    // it recovers. Its reason is in status.
+                    changed = trouble.changed() => {
+                        if changed.is_err() {
+                            break;
+                        }
+                        trouble.borrow_and_update().as_deref().is_none_or(Option::is_none)
+                    }
+                };
+                health.set_serving(healthy).await;
             }
             health.set_serving(false).await;
         }
@@ -171,15 +185,16 @@ struct Refusal {
 impl From<IngestError> for Refusal {
     fn from(e: IngestError) -> Self {
         let code = match &e {
-            IngestError::Invalid(_) | IngestError::UnknownWeightsVersion(_) => {
-                Code::InvalidArgument
-            }
+            IngestError::Invalid(_)
+            | IngestError::UnknownWeightsVersion(_)
+            | IngestError::OutOfRange { .. }
+            | IngestError::EpisodeTooLong { .. } => Code::InvalidArgument,
             IngestError::UnknownActor(_) => Code::NotFound,
             IngestError::StaleIncarnation { .. }
             | IngestError::StaleWeights { .. }
             | IngestError::Finished => Code::FailedPrecondition,
             IngestError::SequenceGap { .. } => Code::OutOfRange,
-            IngestError::WrongRole(_) => Code::PermissionDenied,
+            IngestError::WrongRole(_) | IngestError::TrainerEvaluation(_) => Code::PermissionDenied,
         };
         Self {
             reason: e.reason(),

@@ -62,13 +62,17 @@ pub fn learner_status(
     let run = learner.run_config();
     let (evaluations_total, curve) = learner.recent_curve(max_evaluations);
     let rates = &status.rates;
+    let trouble = learner.trouble().latest().and_then(|t| (*t).clone());
     pb::LearnerStatus {
         state: if status.finished {
             "draining"
+        } else if trouble.is_some() {
+            "unhealthy"
         } else {
             "serving"
         }
         .into(),
+        trouble: trouble.unwrap_or_default(),
         run_config_digest: status.run_config_digest.clone(),
         env: run.env.clone(),
         levels: run.levels as u32,
@@ -108,6 +112,8 @@ pub fn learner_status(
                 trainer_wait_seconds: l.limiter.trainer_blocked.as_secs_f64(),
                 ingest_waits: l.limiter.ingest_refused,
                 ingest_wait_seconds: l.limiter.ingest_blocked.as_secs_f64(),
+                diverged_updates: l.diverged_updates,
+                diverged_in_a_row: l.diverged_in_a_row,
             })
             .collect(),
         rejected: status
