@@ -1,8 +1,8 @@
-//! Rollout speed of a 2- and 3-level pendulum and cartpole agent: whole episodes (actor forward passes at every
-//! level, exploration, goal checks, all three transition kinds into per-level replay). Episodes
-//! vary in length, so each measurement runs whole episodes until it has covered its share of
-//! primitive steps and reports the time per 1000 steps: criterion's throughput is env steps per
-//! second on one core.
+//! Rollout speed of a 2- and 3-level pendulum and cartpole agent: whole episodes (actor forward
+//! passes at every level, exploration, goal checks, all three transition kinds into per-level
+//! replay). Episodes vary in length, so each measurement runs whole episodes until it has covered
+//! its share of primitive steps and reports the time per 1000 steps: criterion's throughput is env
+//! steps per second on one core.
 
 use std::time::Instant;
 
