@@ -1,8 +1,8 @@
-//! Rollout speed of a 2- and 3-level pendulum agent: whole episodes (actor forward passes at every
-//! level, exploration, goal checks, all three transition kinds into per-level replay). Episodes
-//! vary in length, so each measurement runs whole episodes until it has covered its share of
-//! primitive steps and reports the time per 1000 steps: criterion's throughput is env steps per
-//! second on one core.
+//! Rollout speed of a 2- and 3-level pendulum and cartpole agent: whole episodes (actor forward
+//! passes at every level, exploration, goal checks, all three transition kinds into per-level
+//! replay). Episodes vary in length, so each measurement runs whole episodes until it has covered
+//! its share of primitive steps and reports the time per 1000 steps: criterion's throughput is env
+//! steps per second on one core.
 
 use std::time::Instant;
 
@@ -17,8 +17,13 @@ const STEPS: u64 = 1000;
 fn rollout(c: &mut Criterion) {
     let mut group = c.benchmark_group("rollout");
     group.throughput(Throughput::Elements(STEPS));
-    for levels in [2, 3] {
-        let mut env = hac_envs::make("pendulum").unwrap();
+    for (env_name, levels) in [
+        ("pendulum", 2),
+        ("pendulum", 3),
+        ("cartpole", 2),
+        ("cartpole", 3),
+    ] {
+        let mut env = hac_envs::make(env_name).unwrap();
         let spec = env.spec().clone();
         let config = env.default_config(levels);
         let mut rng = Rng::seed_from(1);
@@ -30,7 +35,7 @@ fn rollout(c: &mut Criterion) {
         small.replay_capacity_max = 100_000;
         let replay = Replay::for_agent(&spec, &small, 1);
         for mode in [Mode::Train, Mode::Test] {
-            let name = format!("pendulum_{levels}_levels_{mode:?}").to_lowercase();
+            let name = format!("{env_name}_{levels}_levels_{mode:?}").to_lowercase();
             group.bench_function(name, |b| {
                 b.iter_custom(|iters| {
                     let target = iters * STEPS;

@@ -5,6 +5,8 @@
 //!   model (what the reference simulated in MuJoCo).
 //! - [`ur5`]: the paper's three-joint UR5 reacher, a serial chain integrated with rigid-body
 //!   dynamics (composite rigid body + recursive Newton-Euler).
+//! - [`cartpole`]: a cart-pole swing-up (cart on a free slider, uniform rod on a hinge), the
+//!   two-body model integrated directly from its Lagrangian equations of motion.
 //! - [`mountain_car`]: the continuous mountain car with the PyTorch port's settings as its preset.
 //! - This file: the registry ([`make`], [`names`]) and what the environments share: the error for
 //!   a bad physical state, angle wrapping, and the horizon rule for deep hierarchies.
@@ -16,6 +18,7 @@
 
 #![forbid(unsafe_code)]
 
+pub mod cartpole;
 pub mod mountain_car;
 pub mod pendulum;
 pub mod ur5;
@@ -24,13 +27,19 @@ use std::f64::consts::{PI, TAU};
 
 use hac_core::Env;
 
+pub use cartpole::{CartPole, CartPolePhysics};
 pub use mountain_car::{MountainCar, MountainCarPhysics};
 pub use pendulum::{Pendulum, PendulumPhysics};
 pub use ur5::{Ur5Physics, Ur5Reacher};
 
 /// Names accepted by [`make`], in the order tools should list them.
 pub fn names() -> &'static [&'static str] {
-    &[Pendulum::NAME, Ur5Reacher::NAME, MountainCar::NAME]
+    &[
+        Pendulum::NAME,
+        Ur5Reacher::NAME,
+        MountainCar::NAME,
+        CartPole::NAME,
+    ]
 }
 
 /// A fresh environment with its standard physics, by registry name.
@@ -39,6 +48,7 @@ pub fn make(name: &str) -> Result<Box<dyn Env>, UnknownEnv> {
         Pendulum::NAME => Ok(Box::new(Pendulum::new())),
         Ur5Reacher::NAME => Ok(Box::new(Ur5Reacher::new())),
         MountainCar::NAME => Ok(Box::new(MountainCar::new())),
+        CartPole::NAME => Ok(Box::new(CartPole::new())),
         _ => Err(UnknownEnv {
             name: name.to_string(),
         }),
@@ -191,8 +201,8 @@ mod tests {
 
     #[test]
     fn unknown_name_lists_the_known_ones() {
-        let err = make("cartpole").err().unwrap();
-        assert_eq!(err.name, "cartpole");
+        let err = make("acrobot").err().unwrap();
+        assert_eq!(err.name, "acrobot");
         let msg = err.to_string();
         for name in names() {
             assert!(msg.contains(name), "{msg}");

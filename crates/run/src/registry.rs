@@ -41,9 +41,9 @@ mod tests {
         }
         assert!(is_tabular("four-rooms") && is_tabular("four-rooms-25"));
         assert!(!is_tabular("pendulum"));
-        let err = make("cartpole").err().unwrap().to_string();
+        let err = make("acrobot").err().unwrap().to_string();
         assert!(
-            err.contains("cartpole") && err.contains("pendulum") && err.contains("four-rooms-25"),
+            err.contains("acrobot") && err.contains("pendulum") && err.contains("four-rooms-25"),
             "{err}"
         );
     }

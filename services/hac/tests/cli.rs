@@ -142,7 +142,7 @@ fn bad_configuration_is_rejected_before_training_with_the_key_named() {
     let out = scratch("bad");
     let out_s = out.to_str().unwrap();
     let cases: &[(&[&str], &str)] = &[
-        (&["--env", "cartpole"], "cartpole"),
+        (&["--env", "acrobot"], "acrobot"),
         (&["--levels", "0"], "levels"),
         (&["--set", "gamma=1.5"], "gamma"),
         (&["--set", "horizn=5"], "horizn"),
@@ -229,9 +229,15 @@ fn env_list_and_describe() {
     assert!(o.status.success());
     let list = text(&o.stdout);
     assert!(
-        ["pendulum", "mountain-car", "four-rooms", "four-rooms-25"]
-            .iter()
-            .all(|name| list.contains(name)),
+        [
+            "pendulum",
+            "mountain-car",
+            "cartpole",
+            "four-rooms",
+            "four-rooms-25"
+        ]
+        .iter()
+        .all(|name| list.contains(name)),
         "{list}"
     );
     let o = hac(&["env", "describe", "pendulum", "--json"]);
@@ -288,6 +294,26 @@ fn env_list_and_describe() {
         "{}",
         text(&o.stdout)
     );
+    // The cart-pole's pole angle is its one circular dimension.
+    let o = hac(&["env", "describe", "cartpole", "--json"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
+    assert_eq!(d["spec"]["state_dim"], 5);
+    assert_eq!(d["spec"]["end_goal_dim"], 3);
+    assert_eq!(
+        d["spec"]["subgoal_angles"],
+        serde_json::json!([false, true, false, false])
+    );
+    let horizons: Vec<_> = (0..3)
+        .map(|k| d["defaults"][k]["horizon"].clone())
+        .collect();
+    assert_eq!(horizons, [1000, 32, 10]);
+    let o = hac(&["env", "describe", "cartpole"]);
+    assert!(
+        text(&o.stdout).contains("end goal [1]  subgoal [1]"),
+        "{}",
+        text(&o.stdout)
+    );
     let o = hac(&["env", "describe", "nope"]);
     assert!(!o.status.success() && text(&o.stderr).contains("unknown environment"));
 }
@@ -334,6 +360,37 @@ fn env_rollout_steps_from_a_set_state_and_rejects_bad_lines() {
         );
         assert!(text(&o.stderr).contains("line 1"), "{}", text(&o.stderr));
     }
+    // The cart-pole hanging at rest over x = 0.5, pushed right: the cart moves right, the pole
+    // lags behind it (q past pi, wrapped to negative: sin q < 0).
+    let o = hac_with_stdin(
+        &[
+            "env",
+            "rollout",
+            "--env",
+            "cartpole",
+            "--state",
+            "[0.5, 3.141592653589793, 0, 0]",
+        ],
+        "[1]\n",
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let lines: Vec<serde_json::Value> = text(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let state: Vec<f64> = serde_json::from_value(lines[1]["state"].clone()).unwrap();
+    assert_eq!(state.len(), 5, "{state:?}");
+    assert!(state[0] > 0.5 && state[3] > 0.0, "{state:?}");
+    assert!(state[1] < -0.99 && state[2] < 0.0, "{state:?}");
+    let o = hac_with_stdin(
+        &["env", "rollout", "--env", "cartpole", "--state", "[0, 0]"],
+        "",
+    );
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("cartpole physical state needs 4 values"),
+        "{}",
+        text(&o.stderr)
+    );
     let o = hac_with_stdin(
         &[
             "env",
@@ -780,6 +837,43 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
         "{}",
         text(&o.stderr)
     );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn render_draws_a_cartpole_episode() {
+    let out = scratch("render-cartpole");
+    let run = out.join("run");
+    let o = hac(&[
+        "train",
+        "--env",
+        "cartpole",
+        "--levels",
+        "2",
+        "--episodes",
+        "1",
+        "--set",
+        "exploration_episodes=1",
+        "--set",
+        "test_episodes=1",
+        "--max-actions",
+        "64",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+    let gif = out.join("episode.gif");
+    let o = hac(&[
+        "render",
+        "--run",
+        run.to_str().unwrap(),
+        "--out",
+        gif.to_str().unwrap(),
+        "--episode-steps",
+        "10",
+    ]);
+    assert!(o.status.success(), "render failed: {}", text(&o.stderr));
+    assert_eq!(gif_frames(&gif), 11);
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -32,6 +32,7 @@ pub fn scene_for(env: &str) -> Option<Box<dyn Scene>> {
             arm: Ur5Arm::new(0.0),
         }),
         "mountain-car" => Box::new(MountainCar),
+        "cartpole" => Box::new(CartPole),
         _ => Box::new(FourRooms {
             grid: hac_tabular::four_rooms(env).ok()?.grid().clone(),
         }),
@@ -274,6 +275,111 @@ impl Scene for MountainCar {
     }
 }
 
+/// The cart-pole from the side: the rail along x with a tick every metre, the cart and its pole
+/// (angle 0 up, positive to the right); every goal is a ghost cart with a ghost pole at its x and
+/// angle. Positions beyond the subgoal range (+-2.5 m) are drawn at its edge.
+struct CartPole;
+
+const RAIL_HALF_M: f32 = 2.5;
+const CARTPOLE_PX_PER_M: f32 = 70.0;
+const CART_HALF_W: f32 = 20.0;
+const CART_HALF_H: f32 = 10.0;
+
+impl CartPole {
+    /// Screen position of the hinge of a cart at `x`.
+    fn hinge(&self, (ox, oy): (i32, i32), x: f32) -> (f32, f32) {
+        let (w, h) = self.size();
+        let x = x.clamp(-RAIL_HALF_M, RAIL_HALF_M);
+        (
+            ox as f32 + w as f32 / 2.0 + CARTPOLE_PX_PER_M * x,
+            oy as f32 + h as f32 / 2.0,
+        )
+    }
+
+    /// A cart outline or body and its pole: the state solid, goals as outlines.
+    fn draw_cart(
+        &self,
+        canvas: &mut Canvas,
+        origin: (i32, i32),
+        x: f32,
+        q: f32,
+        solid: bool,
+        c: u8,
+    ) {
+        let hinge = self.hinge(origin, x);
+        let tip = (
+            hinge.0 + CARTPOLE_PX_PER_M * q.sin(),
+            hinge.1 - CARTPOLE_PX_PER_M * q.cos(),
+        );
+        let (left, top) = (
+            (hinge.0 - CART_HALF_W).round() as i32,
+            (hinge.1 - CART_HALF_H).round() as i32,
+        );
+        let (w, h) = ((2.0 * CART_HALF_W) as i32, (2.0 * CART_HALF_H) as i32);
+        if solid {
+            canvas.fill_rect(left, top, w, h, c);
+            canvas.line(hinge, tip, 4.0, c);
+            canvas.fill_circle(hinge, 4.0, DARK_GREY);
+        } else {
+            canvas.rect(left, top, w, h, c);
+            canvas.rect(left + 1, top + 1, w - 2, h - 2, c);
+            canvas.line(hinge, tip, 2.0, c);
+            canvas.circle(tip, 5.0, 2.0, c);
+        }
+    }
+}
+
+impl Scene for CartPole {
+    fn size(&self) -> (i32, i32) {
+        (500, 200)
+    }
+
+    fn draw(&self, canvas: &mut Canvas, origin: (i32, i32), frame: &Frame) {
+        let left = self.hinge(origin, -RAIL_HALF_M);
+        let right = self.hinge(origin, RAIL_HALF_M);
+        canvas.line(left, right, 2.0, GREY);
+        for metre in -2..=2 {
+            let (px, py) = self.hinge(origin, metre as f32);
+            let half = if metre == 0 { 8.0 } else { 5.0 };
+            canvas.line((px, py - half), (px, py + half), 1.0, GREY);
+        }
+        for (goal, colour) in goals(frame) {
+            self.draw_cart(canvas, origin, goal[0], goal[1], false, colour);
+        }
+        let q = frame.state[2].atan2(frame.state[1]);
+        self.draw_cart(canvas, origin, frame.state[0], q, true, BLACK);
+    }
+
+    fn describe_state(&self, state: &[f32]) -> String {
+        let q = state[2].atan2(state[1]);
+        format!(
+            "X {}  ANGLE {} DEG  V {}  SPEED {}",
+            signed(state[0], 2),
+            degrees(q),
+            signed(state[3], 2),
+            signed(state[4], 2)
+        )
+    }
+
+    /// End goals are `[x, q, qdot]`, subgoals `[x, q, xdot, qdot]`.
+    fn describe_goal(&self, goal: &[f32]) -> String {
+        let speeds = match *goal {
+            [_, _, xdot, qdot] => format!("V {}  SPEED {}", signed(xdot, 2), signed(qdot, 2)),
+            _ => format!("SPEED {}", signed(goal[2], 2)),
+        };
+        format!(
+            "X {}  ANGLE {} DEG  {speeds}",
+            signed(goal[0], 2),
+            degrees(goal[1])
+        )
+    }
+
+    fn frame_delay(&self) -> u16 {
+        // An action lasts 0.02 s, as the pendulum's.
+        4
+    }
+}
+
 /// The grid: walls dark, the end goal a red cell, each subgoal a ring in its level's colour, the
 /// agent a black disc.
 struct FourRooms {
@@ -396,6 +502,17 @@ mod tests {
                 frame(vec![-0.5, 0.0], vec![vec![-0.9, 0.01], vec![0.48, 0.04]]),
             ),
             (
+                "cartpole",
+                frame(
+                    vec![0.3, -1.0, 0.0, 0.0, 0.0],
+                    vec![
+                        vec![-1.0, 0.5, 0.0, 0.0],
+                        vec![1.0, -0.5, 0.0, 0.0],
+                        vec![0.5, 0.0, 0.0],
+                    ],
+                ),
+            ),
+            (
                 "four-rooms",
                 frame(
                     vec![1.0, 1.0],
@@ -423,7 +540,7 @@ mod tests {
             assert!(!scene.describe_state(&f.state).is_empty());
             assert!(!scene.describe_goal(f.end_goal()).is_empty());
         }
-        assert!(scene_for("cartpole").is_none());
+        assert!(scene_for("acrobot").is_none());
     }
 
     #[test]
@@ -442,6 +559,47 @@ mod tests {
         assert_eq!(
             scene.describe_goal(&[PI, 1.0]),
             "ANGLE +180 DEG  SPEED +1.00"
+        );
+    }
+
+    #[test]
+    fn the_cartpole_draws_cart_and_pole_where_they_are() {
+        let scene = CartPole;
+        let mut c = Canvas::new(500, 200, WHITE);
+        // The cart at x = 1 m (hinge at (320, 100)) with its pole hanging (cos -1, sin 0); the
+        // end goal upright over x = -1 m (hinge at (180, 100)).
+        scene.draw(
+            &mut c,
+            (0, 0),
+            &frame(vec![1.0, -1.0, 0.0, 0.0, 0.0], vec![vec![-1.0, 0.0, 0.0]]),
+        );
+        assert_eq!(
+            c.get(320, 100 + 50),
+            Some(BLACK),
+            "the pole hangs below the cart"
+        );
+        assert_ne!(c.get(320, 100 - 50), Some(BLACK));
+        assert_eq!(
+            c.get(180, 100 - 50),
+            Some(END_GOAL),
+            "the goal pole stands up"
+        );
+        assert_eq!(
+            c.get(180 - 20, 100),
+            Some(END_GOAL),
+            "the goal cart's outline"
+        );
+        assert_eq!(
+            scene.describe_goal(&[0.5, PI, 1.0]),
+            "X +0.50  ANGLE +180 DEG  SPEED +1.00"
+        );
+        assert_eq!(
+            scene.describe_goal(&[-0.5, 0.0, 1.0, -2.0]),
+            "X -0.50  ANGLE +0 DEG  V +1.00  SPEED -2.00"
+        );
+        assert_eq!(
+            scene.describe_state(&[0.25, 0.0, 1.0, -0.5, 3.0]),
+            "X +0.25  ANGLE +90 DEG  V -0.50  SPEED +3.00"
         );
     }
 
