@@ -39,10 +39,16 @@
 //! it). Physics runs in f64; observations and goals are f32.
 //!
 //! State `[x, cos q, sin q, xdot, qdot]`; end goal `[x, q, qdot]`, subgoal `[x, q, xdot, qdot]`,
-//! angles wrapped to (-pi, pi] and compared along the circle in goal checks. The subgoal
-//! projection clips every dimension to the subgoal bounds (x to +-2.5 m, xdot to +-5 m/s, qdot to
-//! +-15 rad/s; the end goal's qdot to +-15 too): a projected subgoal is the hindsight action of
-//! the level above, which must lie in the box that level's actor proposes in.
+//! angles wrapped to (-pi, pi] and compared along the circle in goal checks. Goals clip the
+//! velocities (xdot to +-5 m/s, qdot to +-15 rad/s) and leave x as it is: the cart has no rail,
+//! so a hindsight subgoal can lie beyond the +-2.5 m the actors propose in.
+//!
+//! Boxes for admitting actors' transitions (`state_bounds` and the goal boxes): the momentum along
+//! x changes only by the force and the slider's damping, so after t seconds |p| <= 10 t; over an
+//! episode of 20 s that bounds the cart below about 190 m/s once the pole's share (at most
+//! m l |qdot|, with |qdot| below 100 rad/s) is counted. The boxes say 200 m/s, and positions
+//! `0.2 + 200 m/s * episode length` (they follow `max_actions`). Random bang-bang control stays
+//! far inside them (tested in the crate root).
 
 use std::f32::consts::PI as PI_F32;
 
@@ -72,6 +78,9 @@ const PHYSICS_STEPS_PER_ACTION: usize = 4;
 /// Half ranges of the subgoal space: x, q, xdot, qdot.
 const SUBGOAL_LIMITS: [f32; 4] = [2.5, PI_F32, 5.0, 15.0];
 const MAX_ACTIONS: usize = 1000;
+/// Speeds the admission boxes allow (see the module doc), m/s and rad/s.
+const MAX_CART_SPEED: f32 = 200.0;
+const MAX_POLE_SPEED: f32 = 100.0;
 
 /// The physical constants a test may want to change; masses and geometry stay fixed.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -202,7 +211,7 @@ impl CartPole {
 
 fn spec() -> EnvSpec {
     let angle_threshold = 10f32.to_radians();
-    EnvSpec {
+    let mut spec = EnvSpec {
         name: CartPole::NAME.to_string(),
         description: "cart-pole swing-up: swing the pole up and hold it still over a goal \
                       position on the rail"
@@ -216,8 +225,33 @@ fn spec() -> EnvSpec {
         // The pole angle is compared along the circle, positions and speeds as numbers.
         end_goal_angles: vec![false, true, false],
         subgoal_angles: vec![false, true, false, false],
+        state_bounds: Bounds::symmetric(&[0.0, 1.0, 1.0, MAX_CART_SPEED, MAX_POLE_SPEED]),
+        end_goal_bounds: Bounds::symmetric(&[0.0, PI_F32, SUBGOAL_LIMITS[3]]),
+        achieved_subgoal_bounds: Bounds::symmetric(&[
+            0.0,
+            PI_F32,
+            SUBGOAL_LIMITS[2],
+            SUBGOAL_LIMITS[3],
+        ]),
         max_actions: MAX_ACTIONS,
         physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
+    };
+    set_position_bounds(&mut spec);
+    spec
+}
+
+/// Sets the position range of the admission boxes for the spec's episode budget: the cart
+/// starts within 0.2 m and moves slower than [`MAX_CART_SPEED`].
+fn set_position_bounds(spec: &mut EnvSpec) {
+    let seconds = spec.max_actions as f64 * PHYSICS_STEPS_PER_ACTION as f64 * TIMESTEP;
+    let reach = (0.2 + f64::from(MAX_CART_SPEED) * seconds) as f32;
+    for bounds in [
+        &mut spec.state_bounds,
+        &mut spec.end_goal_bounds,
+        &mut spec.achieved_subgoal_bounds,
+    ] {
+        bounds.low[0] = -reach;
+        bounds.high[0] = reach;
     }
 }
 
@@ -247,6 +281,7 @@ impl Env for CartPole {
 
     fn set_max_actions(&mut self, max_actions: usize) {
         self.spec.max_actions = max_actions;
+        set_position_bounds(&mut self.spec);
     }
 
     fn set_subgoal_bounds(&mut self, bounds: Bounds) {
@@ -301,9 +336,9 @@ impl Env for CartPole {
         out[2] = state[4].clamp(-SUBGOAL_LIMITS[3], SUBGOAL_LIMITS[3]);
     }
 
-    /// `[x, q, xdot, qdot]`, each clipped to the subgoal bounds.
+    /// `[x, q, xdot, qdot]`, the velocities clipped to the subgoal bounds.
     fn project_subgoal(&self, state: &[f32], out: &mut [f32]) {
-        out[0] = state[0].clamp(-SUBGOAL_LIMITS[0], SUBGOAL_LIMITS[0]);
+        out[0] = state[0];
         out[1] = observed_angle(state);
         out[2] = state[3].clamp(-SUBGOAL_LIMITS[2], SUBGOAL_LIMITS[2]);
         out[3] = state[4].clamp(-SUBGOAL_LIMITS[3], SUBGOAL_LIMITS[3]);
@@ -661,7 +696,7 @@ mod tests {
     }
 
     #[test]
-    fn projections_recover_the_angle_and_clip_to_the_bounds() {
+    fn projections_recover_the_angle_and_clip_the_velocities() {
         let mut env = CartPole::new();
         let mut end = [0.0f32; 3];
         let mut sub = [0.0f32; 4];
@@ -675,12 +710,13 @@ mod tests {
         env.project_end_goal(env.state(), &mut end);
         env.project_subgoal(env.state(), &mut sub);
         assert_eq!((end[0], end[2]), (-9.0, 15.0));
-        assert_eq!((sub[0], sub[2], sub[3]), (-2.5, 5.0, 15.0));
+        assert_eq!((sub[0], sub[2], sub[3]), (-9.0, 5.0, 15.0));
         // A state with sin q = -0 projects to +pi, not -pi.
         env.project_end_goal(&[0.0, -1.0, -0.0, 0.0, 0.0], &mut end);
         assert_eq!(end[1], PI_F32);
-        // Random rollouts and edge states stay inside the subgoal bounds.
-        let bounds = env.spec().subgoal_bounds.clone();
+        // Random rollouts and edge states stay inside the achieved-subgoal box (x beyond the
+        // subgoal bounds included).
+        let bounds = env.spec().achieved_subgoal_bounds.clone();
         for edge in [[30.0, PI, -30.0, 100.0], [-30.0, -PI + 1e-9, 30.0, -100.0]] {
             env.set_physical_state(&edge).unwrap();
             env.project_subgoal(env.state(), &mut sub);
