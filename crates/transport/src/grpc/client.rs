@@ -11,8 +11,8 @@
 //!   jitter and resend every unacknowledged message in order (the learner stores each sequence
 //!   once). After `give_up_after` without an answer, the link fails with
 //!   [`LinkError::Unavailable`].
-//! - `unknown_actor` or `stale_incarnation` (the learner restarted and lost its registry, or the
-//!   id registered again elsewhere): register again with the same [`Registration`], check that the
+//! - `unknown_actor` or `stale_incarnation` on any call or stream, the weights watch included (the
+//!   learner restarted and lost its registry, or the id registered again elsewhere): register again with the same [`Registration`], check that the
 //!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
 //!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
 //! - `finished`: [`LinkError::Finished`]. Any other refusal (including `unauthenticated`: a
@@ -822,6 +822,7 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
                 min_version: 0,
             }
         };
+        let incarnation = request.incarnation;
         let watched = async {
             let mut stream = client.watch_weights(request).await?.into_inner();
             retry.answered();
@@ -863,7 +864,11 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
             () = until_set(&mut closed) => return,
         };
         let outcome = match Failure::of(&status) {
-            Failure::Retry | Failure::Reregister => retry.wait(&status).await,
+            Failure::Retry => retry.wait(&status).await,
+            // Weights go to registered actors only: a learner that restarted (or an id that
+            // registered elsewhere) is answered by registering again, as the ingest task does;
+            // an actor with nothing to send would otherwise wait for weights for ever.
+            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
             Failure::Finished => return,
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };
