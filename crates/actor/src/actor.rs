@@ -84,6 +84,7 @@ pub enum ActorError {
 /// What the actor did, returned when it stops.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ActorSummary {
+    /// The registration the actor ended under (the link may have registered again).
     pub incarnation: u64,
     pub episodes: u64,
     pub env_steps: u64,
@@ -176,6 +177,11 @@ pub fn run_actor(
         Ok(()) => {}
         Err(ActorError::Link(LinkError::Finished)) => actor.s.summary.run_finished = true,
         Err(e) => return Err(e),
+    }
+    // Links register again by themselves (after a learner restart, or when the id registered
+    // elsewhere): the summary names the incarnation the actor ended under, not the first.
+    if let Some(stats) = actor.link.stats() {
+        actor.s.summary.incarnation = stats.incarnation();
     }
     Ok(actor.s.summary)
 }

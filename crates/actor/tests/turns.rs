@@ -1,7 +1,8 @@
 //! Trainers under episode turns (a learner with `episodes_in_flight`), over the in-process
 //! transport: several trainers share the turns, and a turn naming weights that never come (a
 //! learner restarted from an earlier checkpoint in between) is asked for again instead of
-//! waited on forever.
+//! waited on forever. And over gRPC: an actor whose link registered again reports the incarnation
+//! it ended under.
 
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -10,8 +11,9 @@ use std::time::{Duration, Instant};
 use hac_actor::{ActorOptions, run_actor};
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions, Published};
-use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, EvaluationOf, InProcess, LinkError};
+use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, serve};
+use hac_transport::{ActorLink, EvaluationOf, InProcess, LinkError, LinkStats};
 
 fn learner(episodes_in_flight: u32) -> Arc<Learner> {
     let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
@@ -126,4 +128,107 @@ fn a_turn_naming_weights_that_never_come_is_asked_for_again() {
         "it waited for the named weights first"
     );
     assert_eq!(learner.status().episodes, 2);
+}
+
+/// A gRPC link whose actor id is registered again by someone else once its first message is
+/// stored: the link finds its incarnation superseded at the second and registers again.
+struct SupersededOnce {
+    inner: GrpcLink,
+    learner: Arc<Learner>,
+    sent: u32,
+}
+
+const WAIT: Duration = Duration::from_secs(30);
+
+impl ActorLink for SupersededOnce {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.inner.register(registration)
+    }
+
+    fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
+        self.inner.send(item)?;
+        self.sent += 1;
+        match self.sent {
+            // The first message stored under the first incarnation, then the id taken over.
+            1 => {
+                self.inner.flush(WAIT)?;
+                self.learner
+                    .register(Registration {
+                        actor_id: "a".into(),
+                        role: ActorRole::Trainer,
+                        hostname: "elsewhere".into(),
+                        transports: vec!["grpc".into()],
+                    })
+                    .unwrap();
+            }
+            // Refused as stale, registered again, resent and acknowledged.
+            2 => self.inner.flush(WAIT)?,
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        self.inner.flush(timeout)
+    }
+
+    fn weights(&self) -> &Published<WeightsSnapshot> {
+        self.inner.weights()
+    }
+
+    fn learner_version(&self) -> u64 {
+        self.inner.learner_version()
+    }
+
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+        self.inner.await_turn(wait)
+    }
+
+    fn report_evaluation(&mut self, report: &EvaluationOf) -> Result<bool, LinkError> {
+        self.inner.report_evaluation(report)
+    }
+
+    fn stats(&self) -> Option<Arc<LinkStats>> {
+        self.inner.stats()
+    }
+}
+
+#[test]
+fn an_actor_that_registered_again_reports_its_current_incarnation() {
+    let learner = learner(0);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let listener = runtime
+        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
+        .unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let server = runtime.spawn(serve(
+        learner.clone(),
+        listener,
+        ServerOptions::default(),
+        async {
+            let _ = stopped.await;
+        },
+    ));
+    let mut link = SupersededOnce {
+        inner: GrpcLink::connect(&url, GrpcLinkOptions::default()).unwrap(),
+        learner: learner.clone(),
+        sent: 0,
+    };
+    let mut options = trainer("a", 2);
+    options.transports = vec!["grpc".into()];
+    let summary = run_actor(&mut link, &options, &AtomicBool::new(false), |_| {}).unwrap();
+    // 1 at first, 2 for the other registration, 3 when the link registered again.
+    assert_eq!(link.inner.incarnation(), 3);
+    assert_eq!(summary.incarnation, 3, "{summary:?}");
+    assert_eq!(summary.episodes, 2);
+
+    drop(link);
+    learner.finish("test over");
+    let _ = stop.send(());
+    runtime.block_on(server).unwrap().unwrap();
 }

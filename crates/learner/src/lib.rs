@@ -974,6 +974,28 @@ impl Learner {
         }
     }
 
+    /// Checks that `incarnation` is `actor_id`'s current one (unknown actor, stale incarnation;
+    /// counted), for a transport serving a per-actor request that reaches the learner no other
+    /// way (the weights watch).
+    pub fn check_incarnation(&self, actor_id: &str, incarnation: u64) -> Result<(), IngestError> {
+        let current = self
+            .shared
+            .actor(actor_id)
+            .map(|entry| entry.lock().incarnation)
+            .ok_or_else(|| IngestError::UnknownActor(actor_id.to_string()));
+        self.counted(current.and_then(|current| {
+            if current == incarnation {
+                Ok(())
+            } else {
+                Err(IngestError::StaleIncarnation {
+                    actor: actor_id.to_string(),
+                    got: incarnation,
+                    current,
+                })
+            }
+        }))
+    }
+
     /// Validates and stores one message of an actor's ingest stream; see the crate docs. On
     /// error nothing is stored and the rejection is counted.
     pub fn ingest(&self, msg: &IngestMessage) -> Result<Stored, IngestError> {

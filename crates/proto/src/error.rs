@@ -10,6 +10,20 @@ pub enum WireError {
     /// A required field is absent, empty or 0 where 0 means "unset".
     #[error("missing field {field}")]
     MissingField { field: Cow<'static, str> },
+    /// A string above its limit (see the `MAX_*` constants).
+    #[error("{field} is {len} bytes, above the limit of {limit} bytes")]
+    TooLong {
+        field: Cow<'static, str>,
+        len: usize,
+        limit: usize,
+    },
+    /// A repeated field with more entries than its limit.
+    #[error("{field} has {count} entries, above the limit of {limit}")]
+    TooMany {
+        field: &'static str,
+        count: usize,
+        limit: usize,
+    },
     #[error("ingest request has no item")]
     NoIngestItem,
     /// A count or dimension that must be positive is 0.

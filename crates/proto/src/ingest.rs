@@ -2,7 +2,7 @@
 
 use hac_core::{BatchRef, LevelDims};
 
-use crate::{DecodedBatch, WireError, decode_batch, pb};
+use crate::{DecodedBatch, WireError, check_actor_id, decode_batch, pb};
 
 /// One message of an actor's ingest stream. `(actor_id, incarnation, sequence)` identifies it
 /// for exactly-once storage; sequences start at 1 per incarnation, and incarnations are never 0.
@@ -84,23 +84,23 @@ impl IngestItem {
     }
 }
 
-/// Validates an ingest request: the identifying fields are set, an item is present, and a batch
-/// passes [`decode_batch`] against `dims` and `max_count`.
+/// Validates an ingest request: the identifying fields are set (the actor id within
+/// [`MAX_ACTOR_ID_BYTES`](crate::MAX_ACTOR_ID_BYTES)), an item is present, and a batch passes
+/// [`decode_batch`] against `dims` and `max_count`. Moves the id and the item out of `msg`
+/// (nothing is copied); on error the id is left in place, so that the refusal can name the actor.
 pub fn decode_ingest(
-    msg: pb::IngestRequest,
+    msg: &mut pb::IngestRequest,
     dims: &[LevelDims],
     max_count: usize,
 ) -> Result<IngestMessage, WireError> {
-    if msg.actor_id.is_empty() {
-        return Err(WireError::missing("ingest_request.actor_id"));
-    }
+    check_actor_id("ingest_request.actor_id", &msg.actor_id)?;
     if msg.incarnation == 0 {
         return Err(WireError::missing("ingest_request.incarnation"));
     }
     if msg.sequence == 0 {
         return Err(WireError::missing("ingest_request.sequence"));
     }
-    let item = match msg.item.ok_or(WireError::NoIngestItem)? {
+    let item = match msg.item.take().ok_or(WireError::NoIngestItem)? {
         pb::ingest_request::Item::Batch(batch) => {
             IngestItem::Batch(decode_batch(batch, dims, max_count)?)
         }
@@ -111,7 +111,7 @@ pub fn decode_ingest(
         },
     };
     Ok(IngestMessage {
-        actor_id: msg.actor_id,
+        actor_id: std::mem::take(&mut msg.actor_id),
         incarnation: msg.incarnation,
         sequence: msg.sequence,
         item,
@@ -182,9 +182,9 @@ mod tests {
 
     fn through_the_wire(msg: IngestMessage) -> Result<IngestMessage, WireError> {
         let bytes = pb::IngestRequest::from(msg).encode_to_vec();
-        let decoded =
+        let mut decoded =
             pb::IngestRequest::decode(bytes.as_slice()).expect("prost decodes its own bytes");
-        decode_ingest(decoded, &DIMS, 64)
+        decode_ingest(&mut decoded, &DIMS, 64)
     }
 
     proptest! {
@@ -236,8 +236,23 @@ mod tests {
     fn a_request_without_an_item_is_refused() {
         let mut msg = pb::IngestRequest::from(batch_message(2));
         msg.item = None;
-        let err = decode_ingest(msg, &DIMS, 64).expect_err("no item");
+        let err = decode_ingest(&mut msg, &DIMS, 64).expect_err("no item");
         assert_eq!(err.to_string(), "ingest request has no item");
+    }
+
+    #[test]
+    fn a_long_actor_id_is_refused_and_a_refused_message_keeps_its_id() {
+        let mut msg = pb::IngestRequest::from(batch_message(2));
+        msg.actor_id = "x".repeat(300);
+        let err = decode_ingest(&mut msg, &DIMS, 64).expect_err("an id above the limit");
+        assert_eq!(
+            err.to_string(),
+            "ingest_request.actor_id is 300 bytes, above the limit of 256 bytes"
+        );
+
+        let mut msg = pb::IngestRequest::from(batch_message(65));
+        decode_ingest(&mut msg, &DIMS, 64).expect_err("too large");
+        assert_eq!(msg.actor_id, "actor-0");
     }
 
     #[test]

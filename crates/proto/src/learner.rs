@@ -4,7 +4,10 @@ use std::borrow::Cow;
 
 use hac_core::LevelDims;
 
-use crate::{WireError, pb};
+use crate::limits::check_len;
+use crate::{
+    MAX_HOSTNAME_BYTES, MAX_TRANSPORT_NAME_BYTES, MAX_TRANSPORTS, WireError, check_actor_id, pb,
+};
 
 /// What an actor process does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -88,8 +91,27 @@ impl TryFrom<pb::RegisterRequest> for Registration {
     type Error = WireError;
 
     fn try_from(msg: pb::RegisterRequest) -> Result<Self, WireError> {
-        if msg.actor_id.is_empty() {
-            return Err(WireError::missing("register_request.actor_id"));
+        check_actor_id("register_request.actor_id", &msg.actor_id)?;
+        check_len(
+            "register_request.hostname",
+            &msg.hostname,
+            MAX_HOSTNAME_BYTES,
+        )?;
+        if msg.transports.len() > MAX_TRANSPORTS {
+            return Err(WireError::TooMany {
+                field: "register_request.transports",
+                count: msg.transports.len(),
+                limit: MAX_TRANSPORTS,
+            });
+        }
+        for (index, transport) in msg.transports.iter().enumerate() {
+            if transport.len() > MAX_TRANSPORT_NAME_BYTES {
+                return Err(WireError::TooLong {
+                    field: Cow::Owned(format!("register_request.transports[{index}]")),
+                    len: transport.len(),
+                    limit: MAX_TRANSPORT_NAME_BYTES,
+                });
+            }
         }
         Ok(Self {
             role: role_from_pb(msg.role)?,
@@ -245,9 +267,7 @@ impl TryFrom<pb::EvaluationReport> for Evaluation {
     type Error = WireError;
 
     fn try_from(msg: pb::EvaluationReport) -> Result<Self, WireError> {
-        if msg.actor_id.is_empty() {
-            return Err(WireError::missing("evaluation_report.actor_id"));
-        }
+        check_actor_id("evaluation_report.actor_id", &msg.actor_id)?;
         if msg.incarnation == 0 {
             return Err(WireError::missing("evaluation_report.incarnation"));
         }
@@ -446,11 +466,51 @@ mod tests {
     }
 
     #[test]
+    fn every_string_of_a_registration_has_a_length_limit() {
+        let cases: [Case<pb::RegisterRequest>; 4] = [
+            (
+                "register_request.actor_id is 1048576 bytes, above the limit of 256 bytes",
+                |m| m.actor_id = "a".repeat(1 << 20),
+            ),
+            (
+                "register_request.hostname is 256 bytes, above the limit of 255 bytes",
+                |m| m.hostname = "h".repeat(256),
+            ),
+            (
+                "register_request.transports has 9 entries, above the limit of 8",
+                |m| m.transports = vec!["grpc".into(); 9],
+            ),
+            (
+                "register_request.transports[1] is 33 bytes, above the limit of 32 bytes",
+                |m| m.transports[1] = "t".repeat(33),
+            ),
+        ];
+        for (expected, mutate) in cases {
+            let mut msg = pb::RegisterRequest::from(registration());
+            mutate(&mut msg);
+            assert_eq!(
+                Registration::try_from(msg).unwrap_err().to_string(),
+                expected
+            );
+        }
+        // At the limits: accepted.
+        let mut msg = pb::RegisterRequest::from(registration());
+        msg.actor_id = "a".repeat(crate::MAX_ACTOR_ID_BYTES);
+        msg.hostname = "h".repeat(MAX_HOSTNAME_BYTES);
+        msg.transports = vec!["t".repeat(MAX_TRANSPORT_NAME_BYTES); MAX_TRANSPORTS];
+        assert!(Registration::try_from(msg).is_ok());
+    }
+
+    #[test]
     fn evaluations_are_consistent() {
-        let cases: [Case<pb::EvaluationReport>; 4] = [
+        let cases: [Case<pb::EvaluationReport>; 5] = [
             ("missing field evaluation_report.actor_id", |m| {
                 m.actor_id.clear()
             }),
+            (
+                "evaluation_report.actor_id is 257 bytes, above the limit of 256 bytes",
+                |m| m.actor_id = "e".repeat(257),
+            ),
             ("missing field evaluation_report.incarnation", |m| {
                 m.incarnation = 0
             }),

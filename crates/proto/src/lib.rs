@@ -14,6 +14,10 @@
 //! - `weights`: [`WeightsSnapshot`] and the [`WeightsWatch`] request.
 //! - `learner`: [`Registration`], [`Admission`] (with the per-level dimensions and the
 //!   [`ShmOffer`]), [`Evaluation`].
+//! - `limits`: the length limits on the strings of every request message
+//!   ([`MAX_ACTOR_ID_BYTES`], [`MAX_HOSTNAME_BYTES`], [`MAX_TRANSPORTS`],
+//!   [`MAX_TRANSPORT_NAME_BYTES`]), [`check_actor_id`], and [`Clipped`], an id as echoed in errors
+//!   and logs.
 //! - `error`: [`WireError`].
 //!
 //! Conversions follow one pattern: `TryFrom<pb::X>` for what comes in, `From<X> for pb::X` for
@@ -23,6 +27,7 @@ mod batch;
 mod error;
 mod ingest;
 mod learner;
+mod limits;
 mod packed;
 mod weights;
 
@@ -33,6 +38,10 @@ pub use batch::{
 pub use error::WireError;
 pub use ingest::{IngestItem, IngestItemRef, IngestMessage, IngestRef, decode_ingest};
 pub use learner::{ActorRole, Admission, Evaluation, Registration, ShmOffer};
+pub use limits::{
+    Clipped, ECHO_BYTES, MAX_ACTOR_ID_BYTES, MAX_HOSTNAME_BYTES, MAX_TRANSPORT_NAME_BYTES,
+    MAX_TRANSPORTS, check_actor_id,
+};
 pub use packed::{
     PACKED_ALIGNMENT, max_packed_ingest_len, pack_ingest, pack_weights, packed_ingest_len,
     packed_weights_len, unpack_ingest, unpack_weights,

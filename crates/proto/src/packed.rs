@@ -40,7 +40,7 @@ use std::borrow::Cow;
 
 use hac_core::BatchRef;
 
-use crate::{IngestItemRef, IngestRef, WeightsSnapshot, WireError};
+use crate::{IngestItemRef, IngestRef, WeightsSnapshot, WireError, check_actor_id};
 
 const INGEST_MAGIC: [u8; 4] = *b"HACi";
 const WEIGHTS_MAGIC: [u8; 4] = *b"HACw";
@@ -168,9 +168,7 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
     }
     let actor_id = std::str::from_utf8(&bytes[INGEST_HEADER..INGEST_HEADER + id_len])
         .map_err(|_| packed("the actor id is not UTF-8"))?;
-    if actor_id.is_empty() {
-        return Err(WireError::missing("ingest_request.actor_id"));
-    }
+    check_actor_id("ingest_request.actor_id", actor_id)?;
     if incarnation == 0 {
         return Err(WireError::missing("ingest_request.incarnation"));
     }
@@ -554,6 +552,19 @@ mod tests {
         assert_eq!(
             short.to_string(),
             "packed message: 10 bytes, shorter than the 72-byte header"
+        );
+    }
+
+    #[test]
+    fn an_actor_id_above_the_limit_is_refused() {
+        let msg = batch_message(&"s".repeat(crate::MAX_ACTOR_ID_BYTES + 1), 2);
+        let mut buffer = Vec::new();
+        let len = packed_bytes(&msg, &mut buffer);
+        let bytes: &[u8] = bytemuck::cast_slice(buffer.as_slice());
+        let err = unpack_ingest(&bytes[..len]).expect_err("an id above the limit");
+        assert_eq!(
+            err.to_string(),
+            "ingest_request.actor_id is 257 bytes, above the limit of 256 bytes"
         );
     }
 

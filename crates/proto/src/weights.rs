@@ -2,7 +2,7 @@
 
 use std::borrow::Cow;
 
-use crate::{WireError, pb};
+use crate::{WireError, check_actor_id, pb};
 
 /// A whole-model snapshot: `levels[i]` is level `i`'s actor network in safetensors format.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -89,9 +89,7 @@ impl TryFrom<pb::WatchWeightsRequest> for WeightsWatch {
     type Error = WireError;
 
     fn try_from(msg: pb::WatchWeightsRequest) -> Result<Self, WireError> {
-        if msg.actor_id.is_empty() {
-            return Err(WireError::missing("watch_weights_request.actor_id"));
-        }
+        check_actor_id("watch_weights_request.actor_id", &msg.actor_id)?;
         if msg.incarnation == 0 {
             return Err(WireError::missing("watch_weights_request.incarnation"));
         }
@@ -201,12 +199,21 @@ mod tests {
         assert_eq!(WeightsWatch::try_from(msg.clone()).expect("valid"), watch);
         let err = WeightsWatch::try_from(pb::WatchWeightsRequest {
             actor_id: String::new(),
-            ..msg
+            ..msg.clone()
         })
         .expect_err("no actor");
         assert_eq!(
             err.to_string(),
             "missing field watch_weights_request.actor_id"
+        );
+        let err = WeightsWatch::try_from(pb::WatchWeightsRequest {
+            actor_id: "w".repeat(1 << 20),
+            ..msg
+        })
+        .expect_err("an id above the limit");
+        assert_eq!(
+            err.to_string(),
+            "watch_weights_request.actor_id is 1048576 bytes, above the limit of 256 bytes"
         );
     }
 }

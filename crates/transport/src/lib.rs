@@ -17,6 +17,7 @@
 pub mod grpc;
 mod in_process;
 pub mod metrics;
+mod refusal_log;
 pub mod security;
 pub mod shm;
 

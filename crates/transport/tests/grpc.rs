@@ -859,3 +859,273 @@ fn episode_turns_go_over_grpc_one_trainer_at_a_time() {
     drop((a, b));
     runtime.block_on(server.stop());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn strings_above_their_limits_are_refused_and_never_kept_or_echoed_whole() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let mut client = server.client().await;
+    let huge = "a".repeat(1 << 20);
+
+    let mut long_id = registration("ok", ActorRole::Trainer);
+    long_id.actor_id = huge.clone();
+    let status = client.register(long_id).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(reject_reason(&status), Some(RejectReason::InvalidBatch));
+    assert_eq!(
+        status.message(),
+        "register_request.actor_id is 1048576 bytes, above the limit of 256 bytes"
+    );
+    let mut long_host = registration("ok", ActorRole::Trainer);
+    long_host.hostname = huge.clone();
+    let status = client.register(long_host).await.unwrap_err();
+    assert_eq!(
+        status.message(),
+        "register_request.hostname is 1048576 bytes, above the limit of 255 bytes"
+    );
+    assert_eq!(rejected(&learner, RejectReason::InvalidBatch), 2);
+
+    // Every other request that carries an id.
+    let watch = pb::WatchWeightsRequest {
+        actor_id: huge.clone(),
+        incarnation: 1,
+        min_version: 0,
+    };
+    let status = client.watch_weights(watch).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status}");
+    assert!(
+        status
+            .message()
+            .contains("watch_weights_request.actor_id is 1048576 bytes")
+    );
+    let turn = pb::TurnRequest {
+        actor_id: huge.clone(),
+        incarnation: 1,
+        wait_ms: 0,
+    };
+    let status = client.await_turn(turn).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status}");
+    assert!(
+        status
+            .message()
+            .contains("turn_request.actor_id is 1048576 bytes")
+    );
+    let report = pb::EvaluationReport {
+        actor_id: huge.clone(),
+        incarnation: 1,
+        weights_version: 1,
+        episodes: 1,
+        successes: 0,
+        learner_start: 0,
+    };
+    let status = client.report_evaluation(report).await.unwrap_err();
+    assert!(
+        status
+            .message()
+            .contains("evaluation_report.actor_id is 1048576 bytes")
+    );
+    let mut stream = Stream::open(&mut client).await;
+    stream.send(request(&huge, 1, 1, episode())).await;
+    let status = stream.refused().await;
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(
+        status.message(),
+        "ingest_request.actor_id is 1048576 bytes, above the limit of 256 bytes"
+    );
+    assert_eq!(rejected(&learner, RejectReason::InvalidBatch), 6);
+
+    // An unknown id within the limit is echoed clipped.
+    let ghost = "g".repeat(200);
+    let mut stream = Stream::open(&mut client).await;
+    stream.send(request(&ghost, 1, 1, episode())).await;
+    let status = stream.refused().await;
+    assert_eq!(reject_reason(&status), Some(RejectReason::UnknownActor));
+    assert_eq!(
+        status.message(),
+        format!(
+            "unknown actor `{}... (200 bytes)`: register first",
+            "g".repeat(64)
+        )
+    );
+
+    // Nothing was kept: the status stays as small as an idle learner's.
+    let status = learner.status();
+    assert!(status.actors.is_empty());
+    let mut status_client = pb::status_client::StatusClient::new(server.channel().await);
+    let answer = status_client
+        .get_status(pb::GetStatusRequest { max_evaluations: 0 })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(
+        answer.encoded_len() < 4096,
+        "{} bytes",
+        answer.encoded_len()
+    );
+    learner.finish("test over");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn weights_are_watched_by_registered_incarnations_only() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let mut client = server.client().await;
+    let watch = |actor_id: &str, incarnation| pb::WatchWeightsRequest {
+        actor_id: actor_id.into(),
+        incarnation,
+        min_version: 0,
+    };
+
+    let status = client.watch_weights(watch("ghost", 1)).await.unwrap_err();
+    assert_eq!(status.code(), Code::NotFound, "{status}");
+    assert_eq!(reject_reason(&status), Some(RejectReason::UnknownActor));
+    assert_eq!(rejected(&learner, RejectReason::UnknownActor), 1);
+
+    let first = register(&mut client, "a", ActorRole::Trainer).await;
+    let current = register(&mut client, "a", ActorRole::Trainer).await;
+    let status = client.watch_weights(watch("a", first)).await.unwrap_err();
+    assert_eq!(status.code(), Code::FailedPrecondition, "{status}");
+    assert_eq!(reject_reason(&status), Some(RejectReason::StaleIncarnation));
+    assert_eq!(rejected(&learner, RejectReason::StaleIncarnation), 1);
+
+    let mut stream = client
+        .watch_weights(watch("a", current))
+        .await
+        .unwrap()
+        .into_inner();
+    let w = next_weights(&mut stream).await;
+    assert_eq!(w.version, learner.weights().latest().unwrap().version);
+    learner.finish("test over");
+    server.stop().await;
+}
+
+#[test]
+fn a_link_with_nothing_to_send_registers_again_to_watch_a_restarted_learners_weights() {
+    let runtime = server_runtime();
+    let first = start_learner(0);
+    let server = runtime.block_on(Server::start(
+        first.clone(),
+        localhost(),
+        ServerOptions::default(),
+    ));
+    let addr = server.addr;
+    let mut link = GrpcLink::connect(&server.url(), link_options()).unwrap();
+    link.register(&registration_of("quiet")).unwrap();
+    link.weights()
+        .wait_for(WAIT, |_| true)
+        .expect("weights from the first learner");
+    runtime.block_on(server.stop());
+    first.finish("restart");
+
+    // The new learner does not know the actor: its weights watch is refused, and the link
+    // registers again by itself, although it has nothing to send.
+    let second = start_learner(0);
+    let server = runtime.block_on(Server::start(
+        second.clone(),
+        addr,
+        ServerOptions::default(),
+    ));
+    let second_start = second.weights().latest().unwrap().learner_start;
+    link.weights()
+        .wait_for(WAIT, |w| w.learner_start == second_start)
+        .expect("the second learner's weights");
+    assert_eq!(second.status().actors.len(), 1);
+    assert_eq!(
+        link.incarnation(),
+        1,
+        "the second learner's first registration"
+    );
+    assert_eq!(rejected(&second, RejectReason::UnknownActor), 1);
+    second.finish("test over");
+    drop(link);
+    runtime.block_on(server.stop());
+}
+
+/// A raw unary or server-streaming call with `bytes` as the request message.
+async fn raw_call(server: &Server, path: &'static str, bytes: Vec<u8>) -> Status {
+    let mut grpc = tonic::client::Grpc::new(server.channel().await);
+    grpc.ready().await.unwrap();
+    let path = PathAndQuery::from_static(path);
+    if path.path().ends_with("WatchWeights") {
+        match grpc
+            .server_streaming(tonic::Request::new(bytes), path, RawCodec)
+            .await
+        {
+            Ok(response) => refusal(&mut response.into_inner()).await,
+            Err(status) => status,
+        }
+    } else {
+        grpc.unary(tonic::Request::new(bytes), path, RawCodec)
+            .await
+            .expect_err("garbage is refused")
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn undecodable_requests_are_malformed_on_every_rpc() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let paths = [
+        "/hac.v1.Learner/Register",
+        "/hac.v1.Learner/WatchWeights",
+        "/hac.v1.Learner/ReportEvaluation",
+        "/hac.v1.Learner/AwaitTurn",
+        "/hac.v1.Status/GetStatus",
+        "/hac.v1.Status/WatchStatus",
+    ];
+    for (i, path) in paths.into_iter().enumerate() {
+        // Field 31 with the invalid wire type 7, and so on.
+        let status = raw_call(&server, path, vec![0xff; 32]).await;
+        assert_eq!(status.code(), Code::InvalidArgument, "{path}: {status}");
+        assert_eq!(
+            reject_reason(&status),
+            Some(RejectReason::Malformed),
+            "{path}"
+        );
+        assert!(
+            status.message().starts_with("malformed request: "),
+            "{path}: {status}"
+        );
+        assert_eq!(rejected(&learner, RejectReason::Malformed), i as u64 + 1);
+    }
+    // A decodable request still gets its own answer, uncounted as malformed.
+    let status = raw_call(
+        &server,
+        "/hac.v1.Learner/Register",
+        registration("", ActorRole::Trainer).encode_to_vec(),
+    )
+    .await;
+    assert_eq!(reject_reason(&status), Some(RejectReason::InvalidBatch));
+    assert_eq!(
+        rejected(&learner, RejectReason::Malformed),
+        paths.len() as u64
+    );
+    learner.finish("test over");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn acks_on_a_stream_never_go_back() {
+    let learner = start_learner(0);
+    let server = Server::start(learner.clone(), localhost(), ServerOptions::default()).await;
+    let mut client = server.client().await;
+    let incarnation = register(&mut client, "a", ActorRole::Trainer).await;
+    let message = |sequence| request("a", incarnation, sequence, batch_item(&learner, 0, 4));
+
+    let mut stream = Stream::open(&mut client).await;
+    let mut acks = Vec::new();
+    for sequence in [1, 2, 1] {
+        stream.send(message(sequence)).await;
+        let ack = tokio::time::timeout(WAIT, stream.acks.message())
+            .await
+            .expect("an ack in time")
+            .expect("a healthy stream")
+            .expect("an open stream");
+        acks.push(ack.acked_through);
+    }
+    assert_eq!(acks, [1, 2, 2], "the resend of 1 is acknowledged as 2");
+    assert_eq!(learner.status().duplicates, 1);
+    learner.finish("test over");
+    server.stop().await;
+}

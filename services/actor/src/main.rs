@@ -3,7 +3,7 @@
 use clap::Parser;
 use hac_actor_service::ActorArgs;
 use hac_run::daemon::{self, Mount, Section};
-use hac_run::logging::{LogFormat, init_tracing};
+use hac_run::logging::{LogFormat, error_chain, init_tracing};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -33,7 +33,7 @@ fn main() {
         hac_actor_service::run(cli.args)
     });
     if let Err(e) = result {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }
 }

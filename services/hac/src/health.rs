@@ -6,13 +6,15 @@
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
+use hac_transport::security::endpoint;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
 
 /// `hac health` flags.
 #[derive(Debug, clap::Args)]
 pub struct HealthArgs {
-    /// The server, as `http://host:port` (a learner's --listen or an actor's --status-listen).
+    /// The server, as `host:port` or `http://host:port` (a learner's --listen or an actor's
+    /// --status-listen).
     pub url: String,
     /// The service asked about: "" is the whole server; a learner also answers for
     /// `hac.v1.Learner`, an actor for `hac.v1.Status`.
@@ -53,7 +55,8 @@ pub fn run(args: &HealthArgs) -> Result<()> {
 }
 
 async fn check(args: &HealthArgs) -> Result<ServingStatus> {
-    let endpoint = tonic::transport::Endpoint::from_shared(args.url.clone())
+    // The one address parser of every command (`hac status`, the actor's --learner).
+    let endpoint = endpoint(&args.url, None)
         .with_context(|| format!("invalid server URL `{}`", args.url))?
         .connect_timeout(args.timeout)
         .timeout(args.timeout);

@@ -31,7 +31,7 @@ mod schedule;
 mod status_cmd;
 mod tabular_cmd;
 
-use hac_run::logging::{LogFormat, init_tracing};
+use hac_run::logging::{LogFormat, error_chain, init_tracing};
 use hac_run::{config, plot, registry, run_dir};
 
 use std::path::PathBuf;
@@ -320,7 +320,7 @@ fn main() {
             cli
         }
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_chain(&e));
             std::process::exit(1);
         }
     };
@@ -333,7 +333,7 @@ fn main() {
     };
     if let Some(path) = file {
         if let Err(e) = ConfigFile::load(&path).and_then(|f| f.validate(&[&learner, &actor])) {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_chain(&e));
             std::process::exit(1);
         }
     }
@@ -413,7 +413,7 @@ fn main() {
         Command::Status(args) => status_cmd::run(&args),
     };
     if let Err(e) = result {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }
 }

@@ -55,12 +55,44 @@ fn seconds(text: &str) -> Result<Duration, String> {
 
 type Client = pb::status_client::StatusClient<InterceptedService<Channel, BearerToken>>;
 
+/// What answered a status request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Learner,
+    Actor,
+}
+
+impl Kind {
+    fn of(status: &pb::NodeStatus) -> Option<Self> {
+        match status.node {
+            Some(Node::Learner(_)) => Some(Self::Learner),
+            Some(Node::Actor(_)) => Some(Self::Actor),
+            None => None,
+        }
+    }
+}
+
+/// Refuses an answer from another kind of node than the flag named: `--actor` pointed at a
+/// learner's port (or `--learner` at an actor's) would otherwise show the wrong node's table
+/// under the right flag.
+fn check_kind(url: &str, expected: Kind, status: &pb::NodeStatus) -> Result<()> {
+    match (expected, Kind::of(status)) {
+        (Kind::Actor, Some(Kind::Learner)) => bail!(
+            "{url} answers as a learner, not an actor: use --learner {url} for the learner's \
+             status, or give an actor's --status-listen address to --actor"
+        ),
+        (Kind::Learner, Some(Kind::Actor)) => bail!(
+            "{url} answers as an actor, not a learner: use --actor {url} for the actor's status"
+        ),
+        _ => Ok(()),
+    }
+}
+
 pub fn run(args: &StatusArgs) -> Result<()> {
-    let url = args
-        .actor
-        .as_deref()
-        .or(args.learner.as_deref())
-        .unwrap_or(DEFAULT_LEARNER);
+    let (url, expected) = match (&args.actor, &args.learner) {
+        (Some(actor), _) => (actor.as_str(), Kind::Actor),
+        (None, learner) => (learner.as_deref().unwrap_or(DEFAULT_LEARNER), Kind::Learner),
+    };
     let token = args.token.token()?;
     let tls = args.tls.client_tls()?;
     let endpoint = endpoint(url, tls.as_ref())?
@@ -79,7 +111,7 @@ pub fn run(args: &StatusArgs) -> Result<()> {
             pb::status_client::StatusClient::with_interceptor(channel, BearerToken(token));
         let max_evaluations = if args.json { 0 } else { TABLE_EVALUATIONS };
         if args.watch {
-            watch(&mut client, args, max_evaluations).await
+            watch(&mut client, args, url, expected, max_evaluations).await
         } else {
             let request = pb::GetStatusRequest { max_evaluations };
             let status = tokio::time::timeout(args.timeout, client.get_status(request))
@@ -87,12 +119,19 @@ pub fn run(args: &StatusArgs) -> Result<()> {
                 .map_err(|_| anyhow::anyhow!("no answer from {url} within {:?}", args.timeout))?
                 .map_err(|s| status_error(url, &s))?
                 .into_inner();
+            check_kind(url, expected, &status)?;
             print(&status, args.json, false)
         }
     })
 }
 
-async fn watch(client: &mut Client, args: &StatusArgs, max_evaluations: u32) -> Result<()> {
+async fn watch(
+    client: &mut Client,
+    args: &StatusArgs,
+    url: &str,
+    expected: Kind,
+    max_evaluations: u32,
+) -> Result<()> {
     let interval_ms = u32::try_from(args.interval.as_millis()).unwrap_or(u32::MAX);
     let request = pb::WatchStatusRequest {
         interval_ms: interval_ms.max(100),
@@ -101,13 +140,16 @@ async fn watch(client: &mut Client, args: &StatusArgs, max_evaluations: u32) -> 
     let mut stream = client
         .watch_status(request)
         .await
-        .map_err(|s| status_error("the server", &s))?
+        .map_err(|s| status_error(url, &s))?
         .into_inner();
     let clear = !args.json && std::io::stdout().is_terminal();
     loop {
         tokio::select! {
             next = stream.message() => match next {
-                Ok(Some(status)) => print(&status, args.json, clear)?,
+                Ok(Some(status)) => {
+                    check_kind(url, expected, &status)?;
+                    print(&status, args.json, clear)?;
+                }
                 Ok(None) => return Ok(()),
                 Err(s) => bail!("the status stream ended: {}", s.message()),
             },

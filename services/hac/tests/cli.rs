@@ -1,8 +1,11 @@
 //! The `hac` binary as a user runs it: train writes a complete run directory, eval reads it
-//! back, and bad configuration fails early with the offending key named.
+//! back, and bad configuration fails early with the offending key named; addresses are taken
+//! in one form everywhere, and errors say each cause once.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+
+mod common;
 
 fn hac(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_hac"))
@@ -980,4 +983,62 @@ fn bench_connections_holds_actors_against_a_learner_process() {
     // The learner's own memory: a real process, larger than nothing, at least its last sample.
     let peak = report["peak_rss_kib"].as_u64().unwrap();
     assert!(peak >= samples.last().unwrap()["rss_kib"].as_u64().unwrap() && peak > 1024);
+}
+
+#[test]
+fn an_address_may_be_host_port_and_an_error_says_each_cause_once() {
+    // Port 1 on loopback: nothing listens there.
+    let o = hac(&["health", "127.0.0.1:1", "--timeout", "2"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    let stderr = text(&o.stderr);
+    assert!(stderr.contains("connecting to 127.0.0.1:1: "), "{stderr}");
+    let causes: Vec<&str> = stderr.trim().split(": ").collect();
+    assert!(
+        causes.windows(2).all(|pair| pair[0] != pair[1]),
+        "a cause repeated: {stderr}"
+    );
+}
+
+#[test]
+fn status_refuses_a_learner_given_as_an_actor() {
+    let dir = scratch("kinds");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("out");
+    let mut learner = common::hac(
+        &[
+            "learner",
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "100000",
+            "--listen",
+            "127.0.0.1:0",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &dir,
+        "learner",
+    );
+    let addr = common::listening_addr(&mut learner, &dir);
+    // Both forms of the address, in every command that takes one.
+    for url in [addr.clone(), format!("http://{addr}")] {
+        let o = hac(&["health", &url]);
+        assert!(o.status.success(), "{url}: {}", text(&o.stderr));
+        assert!(text(&o.stdout).contains("SERVING"), "{}", text(&o.stdout));
+        let o = hac(&["status", "--learner", &url, "--json"]);
+        assert!(o.status.success(), "{url}: {}", text(&o.stderr));
+    }
+    let o = hac(&["status", "--actor", &addr]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
+    assert!(
+        text(&o.stderr).contains(&format!("{addr} answers as a learner, not an actor")),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(o.stdout.is_empty(), "no table: {}", text(&o.stdout));
+    let _ = learner.kill();
+    let _ = learner.wait();
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -11,8 +11,8 @@
 //!   jitter and resend every unacknowledged message in order (the learner stores each sequence
 //!   once). After `give_up_after` without an answer, the link fails with
 //!   [`LinkError::Unavailable`].
-//! - `unknown_actor` or `stale_incarnation` (the learner restarted and lost its registry, or the
-//!   id registered again elsewhere): register again with the same [`Registration`], check that the
+//! - `unknown_actor` or `stale_incarnation` on any call or stream, the weights watch included (the
+//!   learner restarted and lost its registry, or the id registered again elsewhere): register again with the same [`Registration`], check that the
 //!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
 //!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
 //! - `finished`: [`LinkError::Finished`]. Any other refusal (including `unauthenticated`: a
@@ -664,6 +664,9 @@ async fn reregister(
         renumber(&mut outbox, &shared.stats, admission.incarnation);
         outbox.unacked.len()
     };
+    // An ingest stream open under the old incarnation (another task registered again) starts
+    // over once woken.
+    shared.queued.notify_one();
     shared.stats.learner_version.store(0, Ordering::Relaxed);
     tracing::info!(
         actor = %registration.actor_id,
@@ -689,8 +692,13 @@ impl Shared {
         self.changed.notify_all();
     }
 
-    fn on_ack(&self, ack: &pb::IngestAck) {
+    /// Applies an ack of a stream opened under `incarnation`; false (and nothing applied) if the
+    /// outbox was renumbered since: the ack counts messages of the old numbering.
+    fn on_ack(&self, incarnation: u64, ack: &pb::IngestAck) -> bool {
         let mut outbox = self.outbox.lock();
+        if outbox.incarnation != incarnation {
+            return false;
+        }
         // Never past what was sent, whatever the learner says.
         let through = ack.acked_through.min(outbox.next_sequence() - 1);
         while outbox.acked_through < through {
@@ -704,6 +712,7 @@ impl Shared {
             .learner_version
             .store(ack.weights_version, Ordering::Relaxed);
         self.changed.notify_all();
+        true
     }
 }
 
@@ -711,6 +720,9 @@ impl Shared {
 enum StreamEnd {
     Closed,
     Failed(Status),
+    /// Another task registered again and renumbered the outbox: what the stream sent is
+    /// numbered under the old incarnation, so a new stream starts from the oldest message.
+    Renumbered,
 }
 
 /// Keeps an ingest stream open while anything waits for an ack; reconnects, re-registers and
@@ -733,6 +745,7 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
         let incarnation = shared.outbox.lock().incarnation;
         let status = match ingest_stream(&shared, &channel, &mut retry).await {
             StreamEnd::Closed => return,
+            StreamEnd::Renumbered => continue,
             StreamEnd::Failed(status) => status,
         };
         let outcome = match Failure::of(&status) {
@@ -778,16 +791,27 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
         Err(status) => return StreamEnd::Failed(status),
     };
     retry.answered();
-    let mut sent_through = shared.outbox.lock().acked_through;
+    let (mut sent_through, incarnation) = {
+        let outbox = shared.outbox.lock();
+        (outbox.acked_through, outbox.incarnation)
+    };
     loop {
-        let next = shared.outbox.lock().after(sent_through);
+        let next = {
+            let outbox = shared.outbox.lock();
+            if outbox.incarnation != incarnation {
+                return StreamEnd::Renumbered;
+            }
+            outbox.after(sent_through)
+        };
         tokio::select! {
             biased;
             () = until_set(&mut closed) => return StreamEnd::Closed,
             ack = acks.message() => match ack {
                 Ok(Some(ack)) => {
                     retry.succeeded();
-                    shared.on_ack(&ack);
+                    if !shared.on_ack(incarnation, &ack) {
+                        return StreamEnd::Renumbered;
+                    }
                 }
                 Ok(None) => {
                     return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"));
@@ -822,6 +846,7 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
                 min_version: 0,
             }
         };
+        let incarnation = request.incarnation;
         let watched = async {
             let mut stream = client.watch_weights(request).await?.into_inner();
             retry.answered();
@@ -863,7 +888,11 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
             () = until_set(&mut closed) => return,
         };
         let outcome = match Failure::of(&status) {
-            Failure::Retry | Failure::Reregister => retry.wait(&status).await,
+            Failure::Retry => retry.wait(&status).await,
+            // Weights go to registered actors only: a learner that restarted (or an id that
+            // registered elsewhere) is answered by registering again, as the ingest task does;
+            // an actor with nothing to send would otherwise wait for weights for ever.
+            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
             Failure::Finished => return,
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };

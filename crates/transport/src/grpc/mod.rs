@@ -20,10 +20,10 @@
 //!
 //! | reason                                                  | code                  |
 //! |---------------------------------------------------------|-----------------------|
-//! | `malformed`, `invalid_batch`, `not_finite`, `level_out_of_range` | `INVALID_ARGUMENT` |
+//! | `malformed` (bytes that do not decode, on any RPC), `invalid_batch` (also a string above its length limit), `not_finite`, `level_out_of_range` | `INVALID_ARGUMENT` |
 //! | `oversized` (above the server's message size limit)     | `RESOURCE_EXHAUSTED`  |
 //! | `oversized` (`batch.count` above `max_batch_transitions`) | `INVALID_ARGUMENT`  |
-//! | `unknown_actor`                                         | `NOT_FOUND`           |
+//! | `unknown_actor` (also a weights watch of an unregistered id) | `NOT_FOUND`         |
 //! | `stale_incarnation`, `finished`                         | `FAILED_PRECONDITION` |
 //! | `sequence_gap`                                          | `OUT_OF_RANGE`        |
 //! | `wrong_role`                                            | `PERMISSION_DENIED`   |
@@ -34,6 +34,7 @@
 //! reason (try again later), or `FAILED_PRECONDITION`/`finished` once the run is over.
 
 mod client;
+mod malformed;
 mod ops;
 mod server;
 mod status;
@@ -43,6 +44,7 @@ use tokio::sync::watch;
 use tonic::Status;
 
 pub use client::{ConnectError, GrpcLink, GrpcLinkOptions};
+pub use malformed::RefuseUndecodable;
 pub use ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, serve_status};
 pub use server::{LearnerGrpc, ServerOptions, serve};
 pub use status::{

@@ -14,6 +14,7 @@ use tonic_health::pb::health_server::HealthServer;
 use tonic_health::server::{HealthReporter, HealthService};
 use tower::layer::util::{Identity, Stack};
 
+use super::malformed::RefuseUndecodable;
 use super::status::{StatusGrpc, StatusSource};
 use crate::security::{AuthLayer, ServerTls, Token};
 
@@ -185,8 +186,8 @@ pub async fn serve_status(
 ) -> Result<(), tonic::transport::Error> {
     let (closing_tx, closing) = watch::channel(false);
     let status = StatusGrpc::new(source, closing);
-    let router =
-        router(security, None, &health, &[STATUS_SERVICE])?.add_service(status.into_service());
+    let router = router(security, None, &health, &[STATUS_SERVICE])?
+        .add_service(RefuseUndecodable::new(status.into_service(), None));
     let signal = async move {
         shutdown.await;
         health.set_serving(false).await;

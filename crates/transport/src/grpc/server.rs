@@ -8,6 +8,11 @@
 //! replace the queued one instead of piling up. With a per-actor message rate limit, the task
 //! also sleeps for what [`Learner::throttle`] says before taking a message: the same
 //! backpressure, so nothing is refused.
+//!
+//! Every refusal is counted under its reason and reported to a [`RefusalLog`] (the first per
+//! reason and actor in an interval is logged, the rest summarized). A request tonic cannot decode
+//! never reaches a handler: [`RefuseUndecodable`] turns tonic's `INTERNAL` answer into the same
+//! `INVALID_ARGUMENT`/`malformed` refusal a bad ingest message gets.
 
 use std::error::Error as _;
 use std::future::Future;
@@ -15,16 +20,21 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use hac_learner::{IngestError, Learner, RegisterError, RejectReason, RoomError};
-use hac_proto::{Evaluation, Registration, ShmOffer, WeightsWatch, WireError, decode_ingest, pb};
+use hac_proto::{
+    Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, Registration, ShmOffer, WeightsWatch,
+    WireError, check_actor_id, decode_ingest, pb,
+};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataValue;
 use tonic::{Code, Request, Response, Status, Streaming};
 
+use super::malformed::{OnMalformed, RefuseUndecodable};
 use super::ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, router, serve_router};
 use super::status::StatusGrpc;
 use super::{REJECT_REASON_KEY, until_set};
+use crate::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
 
 /// Transport settings of the learner's gRPC server.
 #[derive(Debug, Clone)]
@@ -68,6 +78,7 @@ pub struct LearnerGrpc {
     learner: Arc<Learner>,
     closing: Arc<watch::Sender<bool>>,
     shm_offer: Option<Arc<ShmOffer>>,
+    refusals: Arc<RefusalLog>,
 }
 
 impl LearnerGrpc {
@@ -76,6 +87,7 @@ impl LearnerGrpc {
             learner,
             closing: Arc::new(watch::Sender::new(false)),
             shm_offer: None,
+            refusals: Arc::new(RefusalLog::new(SUMMARY_INTERVAL)),
         }
     }
 
@@ -92,24 +104,60 @@ impl LearnerGrpc {
         self.closing.send_replace(true);
     }
 
-    /// The tonic service with the message size limits of `options`.
-    pub fn into_service(self, options: &ServerOptions) -> pb::learner_server::LearnerServer<Self> {
-        pb::learner_server::LearnerServer::new(self)
+    /// The tonic service with the message size limits of `options`, refusing undecodable
+    /// requests as `malformed` (counted).
+    pub fn into_service(
+        self,
+        options: &ServerOptions,
+    ) -> RefuseUndecodable<pb::learner_server::LearnerServer<Self>> {
+        let on_malformed = self.on_malformed();
+        let server = pb::learner_server::LearnerServer::new(self)
             .max_decoding_message_size(options.max_message_bytes)
-            .max_encoding_message_size(options.max_message_bytes)
+            .max_encoding_message_size(options.max_message_bytes);
+        RefuseUndecodable::new(server, Some(on_malformed))
     }
 
-    /// A status for a refusal, counted under its reason.
-    fn refuse(&self, refusal: Refusal) -> Status {
+    /// What a request that does not decode costs: a count and a (rate-limited) line.
+    fn on_malformed(&self) -> OnMalformed {
+        let (learner, refusals) = (self.learner.clone(), self.refusals.clone());
+        Arc::new(move |message: &str| {
+            learner.count_rejection(RejectReason::Malformed);
+            refusals.refused("request", RejectReason::Malformed, "", &message);
+        })
+    }
+
+    /// A status for a refusal of `actor`'s `what` found here, counted under its reason and logged.
+    fn refuse(&self, what: &'static str, actor: &str, refusal: Refusal) -> Status {
         self.learner.count_rejection(refusal.reason);
+        self.refused(what, actor, refusal)
+    }
+
+    /// The actor id of a request, checked before the conversion that consumes the request
+    /// (which checks it again), so that a refusal of the rest can name the actor: a copy of at
+    /// most `MAX_ACTOR_ID_BYTES`, for rare requests only (not ingest messages).
+    fn checked_id(
+        &self,
+        what: &'static str,
+        field: &'static str,
+        id: &str,
+    ) -> Result<String, Status> {
+        check_actor_id(field, id).map_err(|e| self.refuse(what, id, e.into()))?;
+        Ok(id.to_string())
+    }
+
+    /// A status for a refusal the learner found (and counted), logged.
+    fn refused(&self, what: &'static str, actor: &str, refusal: impl Into<Refusal>) -> Status {
+        let refusal = refusal.into();
+        self.refusals
+            .refused(what, refusal.reason, actor, &refusal.message);
         refusal.into()
     }
 }
 
 /// Serves `learner` on `listener` until `shutdown` completes: `hac.v1.Learner`, `hac.v1.Status`,
 /// health and reflection, behind `options.security`. Health is `SERVING` from the start (and
-/// `NOT_SERVING` while [`Learner::trouble`] says why) until the run is finished (the learner then serves only its final weights) or `shutdown`
-/// completes. Then ends every open stream, stops accepting connections and waits up to
+/// `NOT_SERVING` while [`Learner::trouble`] says why) until the run is finished (the learner
+/// then serves only its final weights) or `shutdown` completes. Then ends every open stream, stops accepting connections and waits up to
 /// `options.drain_timeout` for the open ones to close.
 pub async fn serve(
     learner: Arc<Learner>,
@@ -119,6 +167,7 @@ pub async fn serve(
 ) -> Result<(), tonic::transport::Error> {
     let service = LearnerGrpc::new(learner.clone()).with_shm_offer(options.shm_offer.clone());
     let health = Health::new(LEARNER_SERVICE).await;
+    let on_malformed = service.on_malformed();
     let status = StatusGrpc::new(learner.clone(), service.closing.subscribe());
     let counter = learner.clone();
     let on_refused: Arc<dyn Fn() + Send + Sync> =
@@ -129,7 +178,10 @@ pub async fn serve(
         &health,
         &[LEARNER_SERVICE, STATUS_SERVICE],
     )?
-    .add_service(status.into_service())
+    .add_service(RefuseUndecodable::new(
+        status.into_service(),
+        Some(on_malformed),
+    ))
     .add_service(service.clone().into_service(&options));
 
     // Serving before the first request can be read: a client that saw the address never
@@ -163,6 +215,18 @@ pub async fn serve(
         }
     };
     let reporter = tokio::spawn(reporter);
+    // The summary of a burst of refusals is logged when its interval ends, even if the burst
+    // ended with it.
+    let summaries = {
+        let refusals = service.refusals.clone();
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(SUMMARY_INTERVAL);
+            loop {
+                every.tick().await;
+                refusals.flush();
+            }
+        })
+    };
     let signal = async move {
         shutdown.await;
         stopping_tx.send_replace(true);
@@ -171,12 +235,13 @@ pub async fn serve(
     };
     let served = serve_router(router, listener, options.drain_timeout, signal).await;
     reporter.abort();
+    summaries.abort();
     served
 }
 
 /// A refusal before it becomes a [`Status`]: the only place that picks status codes.
 #[derive(Debug)]
-struct Refusal {
+pub(super) struct Refusal {
     reason: RejectReason,
     code: Code,
     message: String,
@@ -184,22 +249,33 @@ struct Refusal {
 
 impl From<IngestError> for Refusal {
     fn from(e: IngestError) -> Self {
-        let code = match &e {
-            IngestError::Invalid(_)
-            | IngestError::UnknownWeightsVersion(_)
-            | IngestError::OutOfRange { .. }
-            | IngestError::EpisodeTooLong { .. } => Code::InvalidArgument,
-            IngestError::UnknownActor(_) => Code::NotFound,
-            IngestError::StaleIncarnation { .. }
-            | IngestError::StaleWeights { .. }
-            | IngestError::Finished => Code::FailedPrecondition,
-            IngestError::SequenceGap { .. } => Code::OutOfRange,
-            IngestError::WrongRole(_) | IngestError::TrainerEvaluation(_) => Code::PermissionDenied,
+        let (code, actor) = match &e {
+            IngestError::Invalid(_) | IngestError::UnknownWeightsVersion(_) => {
+                (Code::InvalidArgument, None)
+            }
+            IngestError::OutOfRange { actor, .. } | IngestError::EpisodeTooLong { actor, .. } => {
+                (Code::InvalidArgument, Some(actor))
+            }
+            IngestError::UnknownActor(actor) => (Code::NotFound, Some(actor)),
+            IngestError::StaleIncarnation { actor, .. } => (Code::FailedPrecondition, Some(actor)),
+            IngestError::StaleWeights { .. } | IngestError::Finished => {
+                (Code::FailedPrecondition, None)
+            }
+            IngestError::SequenceGap { actor, .. } => (Code::OutOfRange, Some(actor)),
+            IngestError::WrongRole(actor) | IngestError::TrainerEvaluation(actor) => {
+                (Code::PermissionDenied, Some(actor))
+            }
         };
+        // The learner's messages quote the actor id whole; the wire limits it, and the echo is
+        // clipped further, as everywhere an id is echoed.
+        let mut message = e.to_string();
+        if let Some(actor) = actor.filter(|a| a.len() > ECHO_BYTES) {
+            message = message.replacen(actor.as_str(), &Clipped(actor).to_string(), 1);
+        }
         Self {
             reason: e.reason(),
             code,
-            message: e.to_string(),
+            message,
         }
     }
 }
@@ -216,6 +292,15 @@ impl From<RegisterError> for Refusal {
             RegisterError::EmptyActorId => WireError::missing("register_request.actor_id").into(),
             RegisterError::Finished => IngestError::Finished.into(),
         }
+    }
+}
+
+/// The refusal of bytes that do not decode as the expected message, on every RPC.
+pub(super) fn malformed(message: String) -> Refusal {
+    Refusal {
+        reason: RejectReason::Malformed,
+        code: Code::InvalidArgument,
+        message,
     }
 }
 
@@ -239,18 +324,15 @@ fn receive_failure(status: &Status) -> Option<Refusal> {
     if status.source().is_some() {
         return None;
     }
-    let (reason, code) = match status.code() {
-        Code::OutOfRange | Code::ResourceExhausted => {
-            (RejectReason::Oversized, Code::ResourceExhausted)
-        }
-        Code::Internal => (RejectReason::Malformed, Code::InvalidArgument),
-        _ => return None,
-    };
-    Some(Refusal {
-        reason,
-        code,
-        message: status.message().to_string(),
-    })
+    match status.code() {
+        Code::OutOfRange | Code::ResourceExhausted => Some(Refusal {
+            reason: RejectReason::Oversized,
+            code: Code::ResourceExhausted,
+            message: status.message().to_string(),
+        }),
+        Code::Internal => Some(malformed(status.message().to_string())),
+        _ => None,
+    }
 }
 
 /// How the server ends an ingest stream when it shuts down: `finished` once the run is over, else
@@ -270,7 +352,12 @@ impl LearnerGrpc {
     async fn run_ingest(self, mut requests: Streaming<pb::IngestRequest>, acks: AckSender) {
         let mut closing = self.closing.subscribe();
         let mut pending: Option<pb::IngestAck> = None;
-        let mut transport_noted = false;
+        // The highest ack of the stream: acks never go back, even for a resend of a message
+        // stored long ago, which the learner acknowledges with its own sequence.
+        let mut acked_through = 0;
+        // The actor of the stream's first message (one copy per stream), to name in the
+        // refusal of bytes that do not decode later on.
+        let mut stream_actor: Option<String> = None;
         let end = loop {
             tokio::select! {
                 biased;
@@ -284,16 +371,18 @@ impl LearnerGrpc {
                 }
                 next = requests.message() => match next {
                     Ok(Some(msg)) => {
-                    if !transport_noted {
+                    if stream_actor.is_none() {
                         self.learner.set_actor_transport(&msg.actor_id, TRANSPORT);
-                        transport_noted = true;
+                        // A longer id is refused with this very message, ending the stream.
+                        let id = &msg.actor_id;
+                        stream_actor = Some(if id.len() <= MAX_ACTOR_ID_BYTES { id.clone() } else { String::new() });
                     }
                     match self.accept(msg).await {
                         Ok(ack) => {
                             // Cumulative: a later ack covers the queued one.
-                            let through = pending.map_or(0, |p| p.acked_through);
+                            acked_through = acked_through.max(ack.acked_through);
                             pending = Some(pb::IngestAck {
-                                acked_through: ack.acked_through.max(through),
+                                acked_through,
                                 ..ack
                             });
                         }
@@ -303,8 +392,8 @@ impl LearnerGrpc {
                     Ok(None) => break None,
                     Err(status) => match receive_failure(&status) {
                         Some(refusal) => {
-                            tracing::warn!(reason = refusal.reason.name(), error = %refusal.message, "ingest stream refused");
-                            break Some(self.refuse(refusal));
+                            let actor = stream_actor.as_deref().unwrap_or_default();
+                            break Some(self.refuse("ingest stream", actor, refusal));
                         }
                         None => {
                             tracing::debug!(error = %status, "ingest stream ended by the actor");
@@ -327,14 +416,11 @@ impl LearnerGrpc {
     }
 
     /// Validates, waits for room and stores one message; the ack for it.
-    async fn accept(&self, msg: pb::IngestRequest) -> Result<pb::IngestAck, Status> {
+    async fn accept(&self, mut msg: pb::IngestRequest) -> Result<pb::IngestAck, Status> {
         let learner = &self.learner;
         let options = learner.options();
-        let msg = decode_ingest(msg, learner.dims(), options.max_batch_transitions).map_err(|e| {
-            let refusal = Refusal::from(e);
-            tracing::warn!(reason = refusal.reason.name(), error = %refusal.message, "ingest message refused");
-            self.refuse(refusal)
-        })?;
+        let msg = decode_ingest(&mut msg, learner.dims(), options.max_batch_transitions)
+            .map_err(|e| self.refuse("ingest message", &msg.actor_id, e.into()))?;
         let throttled = learner.throttle(&msg.actor_id);
         if !throttled.is_zero() {
             let mut closing = self.closing.subscribe();
@@ -351,13 +437,8 @@ impl LearnerGrpc {
                 acked_through: msg.sequence,
                 weights_version: learner.weights().latest().map_or(0, |w| w.version),
             }),
-            Err(e) => {
-                if !matches!(e, IngestError::Finished) {
-                    tracing::warn!(actor = %msg.actor_id, reason = e.reason().name(), error = %e, "ingest message refused");
-                }
-                // The learner counted it.
-                Err(Refusal::from(e).into())
-            }
+            // The learner counted it.
+            Err(e) => Err(self.refused("ingest message", &msg.actor_id, e)),
         }
     }
 
@@ -417,8 +498,14 @@ impl pb::learner_server::Learner for LearnerGrpc {
         &self,
         request: Request<pb::RegisterRequest>,
     ) -> Result<Response<pb::RegisterResponse>, Status> {
-        let registration =
-            Registration::try_from(request.into_inner()).map_err(|e| self.refuse(e.into()))?;
+        let request = request.into_inner();
+        let actor = self.checked_id(
+            "registration",
+            "register_request.actor_id",
+            &request.actor_id,
+        )?;
+        let registration = Registration::try_from(request)
+            .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         let wants_shm = registration
             .transports
             .iter()
@@ -426,7 +513,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
         let mut admission = self
             .learner
             .register(registration)
-            .map_err(|e| self.refuse(e.into()))?;
+            .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         if wants_shm {
             admission.shm = self.shm_offer.as_deref().cloned();
         }
@@ -450,8 +537,19 @@ impl pb::learner_server::Learner for LearnerGrpc {
         &self,
         request: Request<pb::WatchWeightsRequest>,
     ) -> Result<Response<Self::WatchWeightsStream>, Status> {
-        let watch =
-            WeightsWatch::try_from(request.into_inner()).map_err(|e| self.refuse(e.into()))?;
+        let request = request.into_inner();
+        let actor = self.checked_id(
+            "weights watch",
+            "watch_weights_request.actor_id",
+            &request.actor_id,
+        )?;
+        let watch = WeightsWatch::try_from(request)
+            .map_err(|e| self.refuse("weights watch", &actor, e.into()))?;
+        // Weights go to registered actors only (the learner counts the refusal): an unknown or
+        // superseded incarnation registers (again) first.
+        self.learner
+            .check_incarnation(&watch.actor_id, watch.incarnation)
+            .map_err(|e| self.refused("weights watch", &watch.actor_id, e))?;
         let (tx, rx) = mpsc::channel(WEIGHTS_QUEUE);
         tokio::spawn(self.clone().run_watch(watch.min_version, tx));
         Ok(Response::new(ReceiverStream::new(rx)))
@@ -461,12 +559,18 @@ impl pb::learner_server::Learner for LearnerGrpc {
         &self,
         request: Request<pb::EvaluationReport>,
     ) -> Result<Response<pb::EvaluationAck>, Status> {
-        let evaluation =
-            Evaluation::try_from(request.into_inner()).map_err(|e| self.refuse(e.into()))?;
+        let request = request.into_inner();
+        let actor = self.checked_id(
+            "evaluation report",
+            "evaluation_report.actor_id",
+            &request.actor_id,
+        )?;
+        let evaluation = Evaluation::try_from(request)
+            .map_err(|e| self.refuse("evaluation report", &actor, e.into()))?;
         // The learner counts its own refusals.
         self.learner
             .report_evaluation(&evaluation)
-            .map_err(|e| Status::from(Refusal::from(e)))?;
+            .map_err(|e| self.refused("evaluation report", &evaluation.actor_id, e))?;
         self.learner
             .set_actor_transport(&evaluation.actor_id, TRANSPORT);
         Ok(Response::new(pb::EvaluationAck {}))
@@ -481,22 +585,27 @@ impl pb::learner_server::Learner for LearnerGrpc {
             incarnation,
             wait_ms,
         } = request.into_inner();
-        if actor_id.is_empty() {
-            return Err(self.refuse(WireError::missing("turn_request.actor_id").into()));
+        if let Err(e) = check_actor_id("turn_request.actor_id", &actor_id) {
+            return Err(self.refuse("turn request", &actor_id, e.into()));
         }
         if incarnation == 0 {
-            return Err(self.refuse(WireError::missing("turn_request.incarnation").into()));
+            let e = WireError::missing("turn_request.incarnation");
+            return Err(self.refuse("turn request", &actor_id, e.into()));
         }
         let learner = self.learner.clone();
         let wait = Duration::from_millis(u64::from(wait_ms));
         // The learner waits on a condition variable; a blocking thread per waiting actor, for
-        // at most the learner's cap on one wait.
-        let turn =
-            tokio::task::spawn_blocking(move || learner.await_turn(&actor_id, incarnation, wait))
-                .await
-                .map_err(|e| Status::internal(format!("turn wait failed: {e}")))?
-                // The learner counts its own refusals.
-                .map_err(|e| Status::from(Refusal::from(e)))?;
+        // at most the learner's cap on one wait. The id comes back for the refusal.
+        let (actor_id, turn) = tokio::task::spawn_blocking(move || {
+            let turn = learner.await_turn(&actor_id, incarnation, wait);
+            (actor_id, turn)
+        })
+        .await
+        // Not INTERNAL: that code is tonic's for a request that does not decode (see
+        // `RefuseUndecodable`).
+        .map_err(|e| Status::unknown(format!("turn wait failed: {e}")))?;
+        // The learner counts its own refusals.
+        let turn = turn.map_err(|e| self.refused("turn request", &actor_id, e))?;
         Ok(Response::new(pb::TurnReply {
             granted: turn.granted,
             episodes: turn.episodes,

@@ -5,7 +5,8 @@
 //! subscriber, ingests it in place through [`Learner::ingest_ref`] and acknowledges cumulatively
 //! per actor incarnation (acks are published once per round of messages, not per message). When
 //! nothing waits it sleeps on the `ingest` event, and every few seconds it removes dead nodes
-//! and the ack services nobody listens to any more. *Weights* waits for each new snapshot in the
+//! and the ack services nobody listens to any more, and logs the summary of refusals not logged
+//! one by one (a `RefusalLog`). *Weights* waits for each new snapshot in the
 //! learner's [`Published`](hac_learner::Published) cell and publishes it packed, with history 1.
 
 use std::collections::HashMap;
@@ -17,7 +18,8 @@ use std::time::{Duration, Instant};
 
 use hac_learner::{IngestError, Learner, RoomError};
 use hac_proto::{
-    PACKED_ALIGNMENT, ShmOffer, WeightsSnapshot, pack_weights, packed_weights_len, unpack_ingest,
+    Clipped, PACKED_ALIGNMENT, ShmOffer, WeightsSnapshot, pack_weights, packed_weights_len,
+    unpack_ingest,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -29,6 +31,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 use super::space::segment_bytes;
 use super::{Ack, AckWire, Ipc, Namespace, Node, ShmError, check_free_space, cleanup_dead_nodes};
+use crate::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
 
 /// How the learner serves shared memory.
 #[derive(Debug, Clone, PartialEq)]
@@ -187,6 +190,7 @@ impl ShmServer {
             _events: ingest_events,
             listener,
             acks: HashMap::new(),
+            refusals: RefusalLog::new(SUMMARY_INTERVAL),
             stop: stop.clone(),
         };
         let weights_thread = Weights {
@@ -351,6 +355,7 @@ struct Ingest {
     listener: Listener<Ipc>,
     /// By actor id, one entry per incarnation seen recently.
     acks: HashMap<String, Vec<AckPort>>,
+    refusals: RefusalLog,
     stop: Arc<AtomicBool>,
 }
 
@@ -407,9 +412,9 @@ impl Ingest {
             Err(e) => {
                 // Without a readable identity there is nobody to answer.
                 let e = IngestError::from(e);
-                let reason = e.reason().name();
-                tracing::warn!(reason, error = %e, "shared-memory message refused");
                 self.learner.count_rejection(e.reason());
+                self.refusals
+                    .refused("shared-memory message", e.reason(), "", &e);
                 return;
             }
         };
@@ -437,11 +442,9 @@ impl Ingest {
                 port.dirty = true;
             }
             Err(e) => {
-                if !matches!(e, IngestError::Finished) {
-                    let (actor, reason) = (msg.actor_id, e.reason().name());
-                    tracing::warn!(actor, reason, error = %e, "ingest message refused");
-                }
                 // The learner counted it.
+                self.refusals
+                    .refused("ingest message", e.reason(), msg.actor_id, &e);
                 port.refused = true;
                 let ack = Ack {
                     acked_through: port.acked_through,
@@ -471,6 +474,7 @@ impl Ingest {
     /// Removes dead nodes' resources (a killed actor's publisher slot), then the ack ports of
     /// incarnations nobody listens to any more.
     fn housekeeping(&mut self) {
+        self.refusals.flush();
         cleanup_dead_nodes(&self.node);
         for ports in self.acks.values_mut() {
             ports.retain(|p| {
@@ -503,8 +507,8 @@ fn port<'a>(
                 ports.len() - 1
             }
             Err(e) => {
-                let actor = actor_id;
-                tracing::warn!(actor, incarnation, error = %e, "cannot answer an actor");
+                let actor = Clipped(actor_id);
+                tracing::warn!(%actor, incarnation, error = %e, "cannot answer an actor");
                 return None;
             }
         },
