@@ -14,6 +14,7 @@ pub const LEARNER: &[&str] = &[
     "max_weights_lag",
     "episodes_in_flight",
     "turn_lease",
+    "forget_actors_after",
     "error_buffer_episodes",
     "grace_period",
     "drain_timeout",
