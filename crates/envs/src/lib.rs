@@ -6,11 +6,14 @@
 //! - [`ur5`]: the paper's three-joint UR5 reacher, a serial chain integrated with rigid-body
 //!   dynamics (composite rigid body + recursive Newton-Euler).
 //! - [`mountain_car`]: the continuous mountain car with the PyTorch port's settings as its preset.
+//! - [`pick_and_place`]: a two-finger gripper picks a block up and puts it at a goal, with contact
+//!   and friction simulated by rapier3d.
 //! - This file: the registry ([`make`], [`names`]) and what the environments share: the error for
 //!   a bad physical state, angle wrapping, and the horizon rule for deep hierarchies.
 //!
 //! Every environment is deterministic for a seed (all randomness comes from the [`hac_core::Rng`]
-//! passed to `reset`), and `step` allocates nothing. Each one also offers a constructor with physics
+//! passed to `reset`), and `step` allocates nothing (pick-and-place: nothing beyond what rapier's
+//! step itself does in the buffers it reuses). Each one also offers a constructor with physics
 //! overrides (for tests) and implements `Env::set_physical_state` (for tools that start from a
 //! chosen state).
 
@@ -18,6 +21,7 @@
 
 pub mod mountain_car;
 pub mod pendulum;
+pub mod pick_and_place;
 pub mod ur5;
 
 use std::f64::consts::{PI, TAU};
@@ -26,11 +30,17 @@ use hac_core::Env;
 
 pub use mountain_car::{MountainCar, MountainCarPhysics};
 pub use pendulum::{Pendulum, PendulumPhysics};
+pub use pick_and_place::{PickAndPlace, PickAndPlacePhysics};
 pub use ur5::{Ur5Physics, Ur5Reacher};
 
 /// Names accepted by [`make`], in the order tools should list them.
 pub fn names() -> &'static [&'static str] {
-    &[Pendulum::NAME, Ur5Reacher::NAME, MountainCar::NAME]
+    &[
+        Pendulum::NAME,
+        Ur5Reacher::NAME,
+        MountainCar::NAME,
+        PickAndPlace::NAME,
+    ]
 }
 
 /// A fresh environment with its standard physics, by registry name.
@@ -39,6 +49,7 @@ pub fn make(name: &str) -> Result<Box<dyn Env>, UnknownEnv> {
         Pendulum::NAME => Ok(Box::new(Pendulum::new())),
         Ur5Reacher::NAME => Ok(Box::new(Ur5Reacher::new())),
         MountainCar::NAME => Ok(Box::new(MountainCar::new())),
+        PickAndPlace::NAME => Ok(Box::new(PickAndPlace::new())),
         _ => Err(UnknownEnv {
             name: name.to_string(),
         }),
