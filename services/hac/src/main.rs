@@ -227,8 +227,9 @@ enum EnvCommand {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Start from this physical state instead (JSON array): pendulum `[q, qdot]`,
-        /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`, four-rooms
-        /// `[row, col]` (a free cell).
+        /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`,
+        /// pick-and-place `[hand x, y, z, opening, block x, y, z]` (at rest, block axis-aligned),
+        /// four-rooms `[row, col]` (a free cell).
         #[arg(long)]
         state: Option<String>,
     },
@@ -236,8 +237,8 @@ enum EnvCommand {
 
 #[derive(Debug, Args)]
 struct TrainArgs {
-    /// Built-in environment: pendulum, ur5-reacher, mountain-car, or a grid world (four-rooms,
-    /// four-rooms-25; learned by tabular HAC) [default: pendulum].
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car, pick-and-place, or a grid world
+    /// (four-rooms, four-rooms-25; learned by tabular HAC) [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
     env: Option<String>,
     /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].
