@@ -1,11 +1,16 @@
 //! `Env::step` of every registered environment, through the registry's `Box<dyn Env>` as the
 //! rollout calls it. One iteration is one primitive action (all its physics steps). For the UR5
-//! arm, also one evaluation of its dynamics (what each of its 15 physics steps costs).
+//! arm, also one evaluation of its dynamics (what each of its 15 physics steps costs). For
+//! pick-and-place, also whole scripted episodes (reset, goal, grasp, carry, hold: the contacts a
+//! rollout meets), timed per action.
 
 use std::hint::black_box;
+use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use hac_core::Rng;
+use hac_core::{Env, Mode, Rng};
+use hac_envs::PickAndPlace;
+use hac_envs::pick_and_place::ScriptedGrasp;
 use hac_envs::ur5::Ur5Arm;
 use nalgebra::Vector3;
 
@@ -45,5 +50,34 @@ fn ur5_dynamics(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, step, ur5_dynamics);
+/// Scripted pick-and-place episodes of 60 actions (the grasp, the carry and a hold), timed per
+/// action; resets and goal draws are included.
+fn pick_and_place_episodes(c: &mut Criterion) {
+    const ACTIONS: u64 = 60;
+    let mut env = PickAndPlace::new();
+    let mut rng = Rng::seed_from(0);
+    let mut goal = [0.0f32; 3];
+    c.bench_function("pick-and-place/scripted-action", |b| {
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            let mut done = 0;
+            while done < iters {
+                let start = Instant::now();
+                env.reset(&mut rng);
+                env.sample_end_goal(&mut rng, Mode::Train, &mut goal);
+                let mut script = ScriptedGrasp::new();
+                for _ in 0..ACTIONS {
+                    let a = script.act(env.state(), &goal);
+                    env.step(black_box(&a));
+                }
+                total += start.elapsed();
+                done += ACTIONS;
+            }
+            // Time per `iters` actions, whatever the last episode overshot.
+            total.mul_f64(iters as f64 / done as f64)
+        })
+    });
+}
+
+criterion_group!(benches, step, ur5_dynamics, pick_and_place_episodes);
 criterion_main!(benches);

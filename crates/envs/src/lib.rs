@@ -8,11 +8,14 @@
 //! - [`cartpole`]: a cart-pole swing-up (cart on a free slider, uniform rod on a hinge), the
 //!   two-body model integrated directly from its Lagrangian equations of motion.
 //! - [`mountain_car`]: the continuous mountain car with the PyTorch port's settings as its preset.
+//! - [`pick_and_place`]: a two-finger gripper picks a block up and puts it at a goal, with contact
+//!   and friction simulated by rapier3d.
 //! - This file: the registry ([`make`], [`names`]) and what the environments share: the error for
 //!   a bad physical state, angle wrapping, and the horizon rule for deep hierarchies.
 //!
 //! Every environment is deterministic for a seed (all randomness comes from the [`hac_core::Rng`]
-//! passed to `reset`), and `step` allocates nothing. Each one also offers a constructor with physics
+//! passed to `reset`), and `step` allocates nothing (pick-and-place: nothing beyond what rapier's
+//! step itself does in the buffers it reuses). Each one also offers a constructor with physics
 //! overrides (for tests) and implements `Env::set_physical_state` (for tools that start from a
 //! chosen state).
 
@@ -21,6 +24,7 @@
 pub mod cartpole;
 pub mod mountain_car;
 pub mod pendulum;
+pub mod pick_and_place;
 pub mod ur5;
 
 use std::f64::consts::{PI, TAU};
@@ -30,6 +34,7 @@ use hac_core::Env;
 pub use cartpole::{CartPole, CartPolePhysics};
 pub use mountain_car::{MountainCar, MountainCarPhysics};
 pub use pendulum::{Pendulum, PendulumPhysics};
+pub use pick_and_place::{PickAndPlace, PickAndPlacePhysics};
 pub use ur5::{Ur5Physics, Ur5Reacher};
 
 /// Names accepted by [`make`], in the order tools should list them.
@@ -39,6 +44,7 @@ pub fn names() -> &'static [&'static str] {
         Ur5Reacher::NAME,
         MountainCar::NAME,
         CartPole::NAME,
+        PickAndPlace::NAME,
     ]
 }
 
@@ -49,6 +55,7 @@ pub fn make(name: &str) -> Result<Box<dyn Env>, UnknownEnv> {
         Ur5Reacher::NAME => Ok(Box::new(Ur5Reacher::new())),
         MountainCar::NAME => Ok(Box::new(MountainCar::new())),
         CartPole::NAME => Ok(Box::new(CartPole::new())),
+        PickAndPlace::NAME => Ok(Box::new(PickAndPlace::new())),
         _ => Err(UnknownEnv {
             name: name.to_string(),
         }),

@@ -228,7 +228,8 @@ enum EnvCommand {
         seed: u64,
         /// Start from this physical state instead (JSON array): pendulum `[q, qdot]`,
         /// ur5-reacher `[q1, q2, q3, qdot1, qdot2, qdot3]`, mountain-car `[x, v]`, cartpole
-        /// `[x, q, xdot, qdot]`, four-rooms `[row, col]` (a free cell).
+        /// `[x, q, xdot, qdot]`, pick-and-place `[hand x, y, z, opening, block x, y, z]` (at rest,
+        /// block axis-aligned), four-rooms `[row, col]` (a free cell).
         #[arg(long)]
         state: Option<String>,
     },
@@ -236,7 +237,8 @@ enum EnvCommand {
 
 #[derive(Debug, Args)]
 struct TrainArgs {
-    /// Built-in environment: pendulum, ur5-reacher, mountain-car, cartpole, or a grid world
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car, cartpole, pick-and-place, or a
+    /// grid world
     /// (four-rooms, four-rooms-25; learned by tabular HAC) [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
     env: Option<String>,

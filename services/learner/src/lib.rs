@@ -51,7 +51,8 @@ use crate::checkpoint::{CheckpointArgs, Checkpoints, Start};
 /// The learner daemon's flags (also `hac learner`'s).
 #[derive(Debug, clap::Args)]
 pub struct LearnerArgs {
-    /// Built-in environment: pendulum, ur5-reacher, mountain-car [default: pendulum].
+    /// Built-in environment: pendulum, ur5-reacher, mountain-car, cartpole, pick-and-place
+    /// [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
     pub env: Option<String>,
     /// Number of levels; 1 is the flat DDPG + HER baseline [default: 2].

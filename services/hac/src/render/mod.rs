@@ -50,7 +50,7 @@ pub fn run(args: &RenderArgs) -> Result<()> {
     let scene = scenes::scene_for(&run.env).with_context(|| {
         format!(
             "no renderer for environment `{}` (renderable: pendulum, ur5-reacher, mountain-car, \
-             cartpole, four-rooms, four-rooms-25)",
+             cartpole, pick-and-place, four-rooms, four-rooms-25)",
             run.env
         )
     })?;

@@ -33,6 +33,7 @@ pub fn scene_for(env: &str) -> Option<Box<dyn Scene>> {
         }),
         "mountain-car" => Box::new(MountainCar),
         "cartpole" => Box::new(CartPole),
+        "pick-and-place" => Box::new(PickAndPlace),
         _ => Box::new(FourRooms {
             grid: hac_tabular::four_rooms(env).ok()?.grid().clone(),
         }),
@@ -380,6 +381,158 @@ impl Scene for CartPole {
     }
 }
 
+/// The gripper and the block from above (x-y) and from the side (x-z): the table, the two pads
+/// and the hand's point, the block, the end goal (a ring where the block should be) and each
+/// level's subgoal (a ring for the block and a square for the hand, joined by a line).
+struct PickAndPlace;
+
+const PNP_PANEL: (i32, i32) = (240, 220);
+const PNP_GAP: i32 = 10;
+const PNP_PX_PER_M: f32 = 400.0;
+
+impl PickAndPlace {
+    /// Screen position of world point `p` in the top panel (`side` false: x right, y up, the
+    /// table's centre in the middle) or the side panel (x right, z up from the table line).
+    fn project(&self, (x, y): (i32, i32), p: [f32; 3], side: bool) -> (f32, f32) {
+        let s = PNP_PX_PER_M;
+        if side {
+            let ox = (x + PNP_PANEL.0 + PNP_GAP + PNP_PANEL.0 / 2) as f32;
+            (ox + s * p[0], self.table_y(y) - s * p[2])
+        } else {
+            let (ox, oy) = (
+                (x + PNP_PANEL.0 / 2) as f32,
+                (y + 16 + (PNP_PANEL.1 - 16) / 2) as f32,
+            );
+            (ox + s * p[0], oy - s * p[1])
+        }
+    }
+
+    fn table_y(&self, y: i32) -> f32 {
+        (y + PNP_PANEL.1 - 20) as f32
+    }
+
+    /// An axis-aligned box of world half extents `half` (x, then y or z) around `centre`.
+    fn fill_box(
+        &self,
+        canvas: &mut Canvas,
+        origin: (i32, i32),
+        centre: [f32; 3],
+        half: [f32; 2],
+        side: bool,
+        colour: u8,
+    ) {
+        let (cx, cy) = self.project(origin, centre, side);
+        let (hx, hy) = (half[0] * PNP_PX_PER_M, half[1] * PNP_PX_PER_M);
+        canvas.fill_rect(
+            (cx - hx).round() as i32,
+            (cy - hy).round() as i32,
+            (2.0 * hx).round() as i32,
+            (2.0 * hy).round() as i32,
+            colour,
+        );
+    }
+}
+
+impl Scene for PickAndPlace {
+    fn size(&self) -> (i32, i32) {
+        (2 * PNP_PANEL.0 + PNP_GAP, PNP_PANEL.1)
+    }
+
+    fn draw(&self, canvas: &mut Canvas, (x, y): (i32, i32), frame: &Frame) {
+        let origin = (x, y);
+        let side_x = x + PNP_PANEL.0 + PNP_GAP;
+        for px in [x, side_x] {
+            canvas.rect(px, y, PNP_PANEL.0, PNP_PANEL.1, LIGHT_GREY);
+        }
+        canvas.text(x + 6, y + 5, "TOP (X-Y)", 2, GREY);
+        canvas.text(side_x + 6, y + 5, "SIDE (X-Z)", 2, GREY);
+        // The table: the workspace's outline from above, its top face from the side.
+        let (a, b) = (
+            self.project(origin, [-0.25, 0.25, 0.0], false),
+            self.project(origin, [0.25, -0.25, 0.0], false),
+        );
+        canvas.fill_rect(
+            a.0 as i32,
+            a.1 as i32,
+            (b.0 - a.0) as i32,
+            (b.1 - a.1) as i32,
+            SAND,
+        );
+        let table = self.table_y(y) as i32;
+        canvas.fill_rect(side_x + 1, table, PNP_PANEL.0 - 2, 18, SAND);
+        canvas.fill_rect(side_x + 1, table, PNP_PANEL.0 - 2, 2, DARK_GREY);
+
+        let state = &frame.state;
+        let block = [state[4], state[5], state[6]];
+        let half = 0.025;
+        self.fill_box(canvas, origin, block, [half, half], false, BLACK);
+        self.fill_box(canvas, origin, block, [half, half], true, BLACK);
+        // The pads: 0.03 along x, 0.01 along y, 0.04 tall from the hand's point up.
+        let hand = [state[0], state[1], state[2]];
+        let offset = 0.5 * (state[3] + 0.01);
+        for sign in [1.0, -1.0] {
+            let pad = [hand[0], hand[1] + sign * offset, hand[2] + 0.02];
+            self.fill_box(canvas, origin, pad, [0.015, 0.005], false, DARK_GREY);
+        }
+        let pads = [hand[0], hand[1], hand[2] + 0.02];
+        self.fill_box(canvas, origin, pads, [0.015, 0.02], true, DARK_GREY);
+        // The arm above the hand, from the side.
+        let top = self.project(origin, [hand[0], 0.0, hand[2] + 0.04], true);
+        canvas.line(top, (top.0, y as f32 + 20.0), 2.0, GREY);
+
+        for (i, (goal, colour)) in goals(frame).into_iter().enumerate() {
+            let radius = ring_radius(i, 12.0, 3.0);
+            let block_goal = if goal.len() >= 7 {
+                let hand_goal = [goal[0], goal[1], goal[2]];
+                for side in [false, true] {
+                    let h = self.project(origin, hand_goal, side);
+                    let b = self.project(origin, [goal[4], goal[5], goal[6]], side);
+                    canvas.line(h, b, 1.0, colour);
+                    canvas.rect(h.0 as i32 - 4, h.1 as i32 - 4, 9, 9, colour);
+                }
+                [goal[4], goal[5], goal[6]]
+            } else {
+                [goal[0], goal[1], goal[2]]
+            };
+            for side in [false, true] {
+                let c = self.project(origin, block_goal, side);
+                canvas.circle(c, radius, 2.0, colour);
+            }
+        }
+    }
+
+    /// The state's first seven values are a subgoal's: hand, opening, block.
+    fn describe_state(&self, state: &[f32]) -> String {
+        self.describe_goal(&state[0..7])
+    }
+
+    /// Positions in centimetres: the block's for an end goal; the hand's, the opening and the
+    /// block's for a subgoal.
+    fn describe_goal(&self, goal: &[f32]) -> String {
+        let cm = |v: &[f32]| {
+            v.iter()
+                .map(|x| format!("{:+.0}", (x * 100.0).round() + 0.0))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        if goal.len() >= 7 {
+            format!(
+                "HAND {} OPEN {:.0} BLOCK {} CM",
+                cm(&goal[0..3]),
+                goal[3] * 100.0,
+                cm(&goal[4..7])
+            )
+        } else {
+            format!("BLOCK {} CM", cm(&goal[0..3]))
+        }
+    }
+
+    fn frame_delay(&self) -> u16 {
+        // An action lasts 0.04 s.
+        4
+    }
+}
+
 /// The grid: walls dark, the end goal a red cell, each subgoal a ring in its level's colour, the
 /// agent a black disc.
 struct FourRooms {
@@ -500,6 +653,19 @@ mod tests {
             (
                 "mountain-car",
                 frame(vec![-0.5, 0.0], vec![vec![-0.9, 0.01], vec![0.48, 0.04]]),
+            ),
+            (
+                "pick-and-place",
+                frame(
+                    vec![
+                        0.05, 0.0, 0.1, 0.05, 0.05, 0.0, 0.125, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                        0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                    ],
+                    vec![
+                        vec![0.1, 0.1, 0.0, 0.1, 0.1, 0.1, 0.025],
+                        vec![-0.1, -0.1, 0.2],
+                    ],
+                ),
             ),
             (
                 "cartpole",
