@@ -74,10 +74,11 @@ impl Feeder {
                     .iter_mut()
                     .for_each(|v| *v = self.data.uniform(-1.0, 1.0));
             }
+            // Rewards a level produces (the learner admits no others): 0 or -1.
             batch
                 .rewards
                 .iter_mut()
-                .for_each(|r| *r = -self.data.unit());
+                .for_each(|r| *r = if self.data.unit() < 0.5 { 0.0 } else { -1.0 });
             self.send(
                 learner,
                 IngestItem::Batch(DecodedBatch {
