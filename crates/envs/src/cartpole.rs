@@ -52,9 +52,9 @@
 
 use std::f32::consts::PI as PI_F32;
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, horizon_covering};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng};
 
-use crate::{StateError, check_physical_state, wrap_angle};
+use crate::{StateError, check_physical_state, stated_horizon, wrap_angle};
 
 /// Mass of the cart, kg.
 pub const CART_MASS: f64 = 1.0;
@@ -291,14 +291,7 @@ impl Env for CartPole {
     /// The pendulum's H per level count (1000 / 32 / 10 for 1 / 2 / 3 levels) and the reference
     /// values for everything else.
     fn default_config(&self, levels: usize) -> AgentConfig {
-        // The flat agent gets the whole budget; deeper hierarchies than 3 the smallest H whose
-        // H^levels covers it, the rule that also gives 32 and 10 for the 1000-action budget.
-        let horizon = match levels {
-            1 => self.spec.max_actions,
-            2 => 32,
-            3 => 10,
-            k => horizon_covering(self.spec.max_actions, k),
-        };
+        let horizon = stated_horizon(levels, self.spec.max_actions, [32, 10]);
         // Noise 0.1 and 0.1 of the half range, 200 episodes stored, 50 training episodes between
         // test rounds, no target networks.
         AgentConfig::reference(levels, horizon)

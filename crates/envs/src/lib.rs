@@ -69,6 +69,19 @@ pub struct UnknownEnv {
     pub name: String,
 }
 
+/// A task's H for `levels` levels: the whole episode budget for the flat agent, the task's own
+/// `two` and `three` for 2 and 3 levels, and for deeper hierarchies the smallest H whose
+/// `H^levels` covers the budget. A run's own budget moves the flat H and the deeper ones, not
+/// the task's stated two.
+fn stated_horizon(levels: usize, max_actions: usize, [two, three]: [usize; 2]) -> usize {
+    match levels {
+        1 => max_actions,
+        2 => two,
+        3 => three,
+        k => hac_core::horizon_covering(max_actions, k),
+    }
+}
+
 /// A physical state that `set_physical_state` refuses (defined in core, beside the trait).
 pub use hac_core::StateError;
 

@@ -19,9 +19,9 @@
 
 use std::f32::consts::PI as PI_F32;
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, horizon_covering};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng};
 
-use crate::{StateError, check_physical_state, wrap_angle};
+use crate::{StateError, check_physical_state, stated_horizon, wrap_angle};
 
 /// Distance from the hinge to the sphere's centre, m.
 pub const POLE_LENGTH: f64 = 0.5;
@@ -191,16 +191,8 @@ impl Env for Pendulum {
 
     /// HAC.md's reference values, with ENVS.md's pendulum specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
-        // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
-        // H^levels covers the 1000-action budget, i.e. ceil(1000^(1/levels)) (the same rule
-        // reproduces 1000, 32 and 10). A run's own budget (`max_actions`) moves the flat H and
-        // the deeper ones, not ENVS.md's 32 and 10.
-        let horizon = match levels {
-            1 => self.spec.max_actions,
-            2 => 32,
-            3 => 10,
-            k => horizon_covering(self.spec.max_actions, k),
-        };
+        // The covering rule of `stated_horizon` reproduces 1000, 32 and 10 here.
+        let horizon = stated_horizon(levels, self.spec.max_actions, [32, 10]);
         // Everything else is the reference's: noise 0.1 and 0.1 of the half range, 200 episodes
         // stored, 50 training episodes between test rounds, no target networks.
         AgentConfig::reference(levels, horizon)

@@ -67,10 +67,10 @@
 //! [`ScriptedGrasp`] is a hand-written controller (above the block, open, descend, close, lift,
 //! carry, hold) that checks the physics: it should succeed in nearly every episode.
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, horizon_covering};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng};
 use rapier3d::prelude::*;
 
-use crate::{StateError, check_physical_state};
+use crate::{StateError, check_physical_state, stated_horizon};
 
 /// Integration timestep, s.
 pub const TIMESTEP: f32 = 0.002;
@@ -569,14 +569,7 @@ impl Env for PickAndPlace {
     /// H = 200 / 15 / 6 for 1 / 2 / 3 levels, noise 0.1 of the half range at every level, 500
     /// episodes stored, 50 training episodes between test rounds.
     fn default_config(&self, levels: usize) -> AgentConfig {
-        // Deeper hierarchies take the smallest H whose H^levels covers the budget; a run's own
-        // budget moves the flat H and the deeper ones, not 15 and 6.
-        let horizon = match levels {
-            1 => self.spec.max_actions,
-            2 => 15,
-            3 => 6,
-            k => horizon_covering(self.spec.max_actions, k),
-        };
+        let horizon = stated_horizon(levels, self.spec.max_actions, [15, 6]);
         AgentConfig {
             episodes_to_store: 500,
             ..AgentConfig::reference(levels, horizon)
@@ -795,7 +788,7 @@ mod tests {
     fn default_config_per_level_count() {
         let env = PickAndPlace::new();
         let h: Vec<usize> = (1..=4).map(|k| env.default_config(k).horizon).collect();
-        assert_eq!(h, [200, 15, 6, horizon_covering(200, 4)]);
+        assert_eq!(h, [200, 15, 6, hac_core::horizon_covering(200, 4)]);
         let c = env.default_config(2);
         assert_eq!(c.action_noise, hac_core::Noise::Relative(0.1));
         assert_eq!(c.subgoal_noise, hac_core::Noise::Relative(0.1));

@@ -42,12 +42,12 @@ pub mod arm;
 
 use std::f32::consts::{FRAC_PI_4, PI as PI_F32, TAU as TAU_F32};
 
-use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng, horizon_covering};
+use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Noise, Rng};
 use nalgebra::Vector3;
 
 pub use arm::{JOINTS, Pose, Ur5Arm, WRIST_IN_FOREARM};
 
-use crate::{StateError, check_physical_state, wrap_angle};
+use crate::{StateError, check_physical_state, stated_horizon, wrap_angle};
 
 /// Integration timestep, s.
 pub const TIMESTEP: f64 = 0.002;
@@ -268,15 +268,8 @@ impl Env for Ur5Reacher {
 
     /// HAC.md's reference values, with ENVS.md's UR5 specifics (H, noise, storage, schedule).
     fn default_config(&self, levels: usize) -> AgentConfig {
-        // ENVS.md gives H for 1 to 3 levels; deeper hierarchies take the smallest H whose
-        // H^levels covers the 600-action budget (that rule gives 9, not 10, for 3 levels). A
-        // run's own budget (`max_actions`) moves the flat H and the deeper ones, not 25 and 10.
-        let horizon = match levels {
-            1 => self.spec.max_actions,
-            2 => 25,
-            3 => 10,
-            k => horizon_covering(self.spec.max_actions, k),
-        };
+        // The covering rule of `stated_horizon` would give 9, not 10, for 3 levels here.
+        let horizon = stated_horizon(levels, self.spec.max_actions, [25, 10]);
         AgentConfig {
             // ENVS.md: primitive 0.1 and subgoal 0.03, as fractions of the half range.
             subgoal_noise: Noise::Relative(0.03),
