@@ -1509,18 +1509,17 @@ impl Shared {
             // A diverged update is undone and still counts as done: the schedule goes on with
             // the last good weights, which are all that is ever published.
             let outcome = learner.update_or_undo(&batch, &mut backup);
+            // Whether the level started or stopped failing: reported once its slot is released.
+            let failing_changed;
             {
                 let mut slot = self.slots[level].lock();
                 slot.completed += 1;
                 match outcome {
                     Ok(stats) => {
                         slot.last = Some(stats);
-                        if slot.diverged_in_a_row >= MAX_DIVERGED_IN_A_ROW {
+                        failing_changed = slot.diverged_in_a_row >= MAX_DIVERGED_IN_A_ROW;
+                        if failing_changed {
                             tracing::info!(level, "level recovered: an update succeeded");
-                            slot.diverged_in_a_row = 0;
-                            drop(slot);
-                            self.report_trouble();
-                            slot = self.slots[level].lock();
                         }
                         slot.diverged_in_a_row = 0;
                     }
@@ -1530,11 +1529,7 @@ impl Shared {
                         slot.last_divergence = Some(diverged);
                         let in_a_row = slot.diverged_in_a_row;
                         tracing::warn!(level, %diverged, in_a_row, "update undone");
-                        if in_a_row == MAX_DIVERGED_IN_A_ROW {
-                            drop(slot);
-                            self.report_trouble();
-                            slot = self.slots[level].lock();
-                        }
+                        failing_changed = in_a_row == MAX_DIVERGED_IN_A_ROW;
                     }
                 }
                 let status = limiter.status();
@@ -1554,6 +1549,9 @@ impl Shared {
                 if caught_up {
                     slot.covered_episodes = slot.covered_episodes.max(status.episodes);
                 }
+            }
+            if failing_changed {
+                self.report_trouble();
             }
             self.maybe_publish();
         }
