@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use hac_agent::{Agent, RoundReport, RunConfig};
-use hac_learner::{Learner, LearnerOptions, LearnerStatus, StartError};
+use hac_learner::{BestWeights, Learner, LearnerOptions, LearnerStatus, StartError};
 use hac_transport::InProcess;
 
 use crate::{ActorError, ActorOptions, ActorSummary, run_actor};
@@ -25,6 +25,8 @@ pub struct EmbeddedRun {
     pub agent: Agent,
     /// One point per test round.
     pub curve: Vec<RoundReport>,
+    /// The weights of the best test round (none if no round was evaluated).
+    pub best: Option<Arc<BestWeights>>,
     pub status: LearnerStatus,
     pub actor: ActorSummary,
 }
@@ -64,6 +66,7 @@ pub fn train_embedded(
     Ok(EmbeddedRun {
         agent: finished.agent,
         curve: finished.curve,
+        best: finished.best,
         status: finished.status,
         actor: actor?,
     })

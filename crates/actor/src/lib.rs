@@ -18,4 +18,4 @@ mod policy;
 pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, run_actor};
 pub use adder::Adder;
 pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded};
-pub use policy::{SnapshotError, SnapshotPolicy};
+pub use policy::{SnapshotError, SnapshotPolicy, best_policy};

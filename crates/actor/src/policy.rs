@@ -1,7 +1,7 @@
 //! [`SnapshotPolicy`]: the actor networks of one published weights version, as the rollout's
 //! [`Policy`].
 
-use hac_core::{LevelDims, Policy};
+use hac_core::{EnvSpec, LevelDims, Policy};
 use hac_nn::{Actor, NnError};
 use hac_proto::WeightsSnapshot;
 
@@ -96,6 +96,32 @@ impl SnapshotPolicy {
     pub fn version(&self) -> u64 {
         self.version
     }
+
+    /// Every level's actor network, level 0 first.
+    pub fn into_actors(self) -> Vec<Actor> {
+        self.actors
+    }
+}
+
+/// The policy in a run's `weights/best/` (each level's actor as safetensors, level 0 first),
+/// checked against the run's `spec` and level count like a snapshot from the learner.
+pub fn best_policy(
+    levels: Vec<Vec<u8>>,
+    weights_version: u64,
+    spec: &EnvSpec,
+    num_levels: usize,
+) -> Result<SnapshotPolicy, SnapshotError> {
+    let dims: Vec<LevelDims> = (0..num_levels)
+        .map(|level| spec.level_dims(level, num_levels))
+        .collect();
+    let snapshot = WeightsSnapshot {
+        version: weights_version,
+        levels,
+        episodes: 0,
+        run_finished: true,
+        learner_start: 0,
+    };
+    SnapshotPolicy::from_snapshot(&snapshot, &dims)
 }
 
 impl Policy for SnapshotPolicy {

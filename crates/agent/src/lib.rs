@@ -200,11 +200,12 @@ impl RoundReport {
     }
 }
 
-/// Greedy test episodes of a saved agent. Calls `on_episode` with each outcome, the final state
-/// and the episode's end goal; returns the success rate.
+/// Greedy test episodes of a saved agent (or any policy, such as a run's best weights). Calls
+/// `on_episode` with each outcome, the final state and the episode's end goal; returns the
+/// success rate.
 pub fn evaluate(
     env: &mut dyn Env,
-    agent: &mut Agent,
+    agent: &mut impl Policy,
     config: &AgentConfig,
     episodes: usize,
     seed: u64,

@@ -12,7 +12,9 @@
 //! - `learner.json`: the run config (TOML text) and its digest, the weights version, counters,
 //!   the learning curve, each level's update count, rate-limiter counts and random-stream state;
 //! - `level<i>.safetensors`: level `i`'s actor, critic and Adam state (`hac_nn::LevelLearner`);
-//! - `replay-level<i>.safetensors`: level `i`'s replay table, when saved with the replay.
+//! - `replay-level<i>.safetensors`: level `i`'s replay table, when saved with the replay;
+//! - `best-level<i>.safetensors`: level `i`'s actor as of the best test round so far
+//!   ([`BestWeights`]), once a round has been evaluated; `learner.json` says which round.
 //!
 //! Writing them to disk atomically, with a manifest, is the caller's business (`hac-run`).
 //!
@@ -31,7 +33,13 @@ use hac_nn::{LearnerConfig, LevelLearner, UpdateStats};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
 use serde::{Deserialize, Serialize};
 
-use crate::{Counters, FinishedRun, Learner, LearnerOptions, RejectReason, Shared, StartError};
+use std::sync::Arc;
+
+use hac_proto::WeightsSnapshot;
+
+use crate::{
+    BestWeights, Counters, FinishedRun, Learner, LearnerOptions, RejectReason, Shared, StartError,
+};
 
 /// Name of the state file in a checkpoint.
 pub const STATE_FILE: &str = "learner.json";
@@ -44,6 +52,10 @@ fn level_file(level: usize) -> String {
 
 fn replay_file(level: usize) -> String {
     format!("replay-level{level}.safetensors")
+}
+
+fn best_file(level: usize) -> String {
+    format!("best-level{level}.safetensors")
 }
 
 /// Why a checkpoint could not be taken, read or resumed from.
@@ -178,6 +190,20 @@ pub(crate) struct LearnerState {
     /// Whether `replay-level<i>.safetensors` files belong to the checkpoint.
     replay: bool,
     levels: Vec<LevelState>,
+    /// The best test round so far, whose actors are `best-level<i>.safetensors` (absent before
+    /// the first round, and in checkpoints written before best weights were kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    best: Option<BestState>,
+}
+
+/// [`BestWeights`] without its networks, in `learner.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct BestState {
+    round: usize,
+    episodes: u64,
+    env_steps: u64,
+    success_rate: f32,
+    weights_version: u64,
 }
 
 impl LearnerState {
@@ -195,6 +221,14 @@ impl LearnerState {
     }
 }
 
+/// What [`Shared::capture`] reads while ingest is paused.
+struct Captured {
+    state: LearnerState,
+    replay: Option<Vec<Vec<u8>>>,
+    /// The best round's actors, as `state.best` describes.
+    best: Option<Vec<Vec<u8>>>,
+}
+
 /// A consistent snapshot of a learner's whole state; see the module docs. Written to disk as
 /// the files of [`to_files`](Self::to_files).
 #[derive(Debug, Clone, PartialEq)]
@@ -204,6 +238,8 @@ pub struct LearnerCheckpoint {
     levels: Vec<Vec<u8>>,
     /// `replay-level<i>.safetensors`, when the replay was saved.
     replay: Option<Vec<Vec<u8>>>,
+    /// `best-level<i>.safetensors`, when `state.best` is set.
+    best: Option<Vec<Vec<u8>>>,
 }
 
 impl LearnerCheckpoint {
@@ -236,6 +272,24 @@ impl LearnerCheckpoint {
     /// Why the run completed, if it did; such a checkpoint cannot be resumed.
     pub fn completed(&self) -> Option<&str> {
         self.state.completed.as_deref()
+    }
+
+    /// The weights of the best test round up to the checkpoint, if a round was evaluated.
+    pub fn best(&self) -> Option<BestWeights> {
+        let (state, levels) = (self.state.best.as_ref()?, self.best.as_ref()?);
+        Some(BestWeights {
+            round: state.round,
+            episodes: state.episodes,
+            env_steps: state.env_steps,
+            success_rate: state.success_rate,
+            snapshot: Arc::new(WeightsSnapshot {
+                version: state.weights_version,
+                levels: levels.clone(),
+                episodes: state.episodes,
+                run_finished: false,
+                learner_start: 0,
+            }),
+        })
     }
 
     /// Whether the replay tables were saved.
@@ -288,6 +342,9 @@ impl LearnerCheckpoint {
         for (level, bytes) in self.replay.iter().flatten().enumerate() {
             files.push((replay_file(level), bytes.clone()));
         }
+        for (level, bytes) in self.best.iter().flatten().enumerate() {
+            files.push((best_file(level), bytes.clone()));
+        }
         files
     }
 
@@ -324,10 +381,19 @@ impl LearnerCheckpoint {
         } else {
             None
         };
+        let best = match &state.best {
+            Some(_) => Some(
+                (0..count)
+                    .map(|level| take(&best_file(level)))
+                    .collect::<Result<_, _>>()?,
+            ),
+            None => None,
+        };
         Ok(Self {
             state,
             levels,
             replay,
+            best,
         })
     }
 
@@ -464,13 +530,13 @@ impl Learner {
     pub fn checkpoint(&self, with_replay: bool) -> Result<LearnerCheckpoint, CheckpointError> {
         let shared = &self.shared;
         let _one_at_a_time = shared.snapshots.one_at_a_time.lock();
-        let (levels, state, replay) = {
+        let (levels, captured) = {
             let _ingest_paused = shared.gate.write();
             let levels = shared.collect_snapshots()?;
-            let (state, replay) = shared.capture(&levels, with_replay);
-            (levels, state, replay)
+            let captured = shared.capture(&levels, with_replay);
+            (levels, captured)
         };
-        Ok(LearnerCheckpoint::of(state, &levels, replay))
+        Ok(LearnerCheckpoint::of(captured, &levels))
     }
 }
 
@@ -497,8 +563,7 @@ impl FinishedRun {
                 }
             })
             .collect();
-        let (state, replay) = shared.capture(&levels, with_replay);
-        LearnerCheckpoint::of(state, &levels, replay)
+        LearnerCheckpoint::of(shared.capture(&levels, with_replay), &levels)
     }
 }
 
@@ -551,11 +616,7 @@ impl Shared {
 
     /// The state of `levels` with this learner's counters, curve and version, and the replay
     /// tables if `with_replay`: what must be read while ingest is paused.
-    fn capture(
-        &self,
-        levels: &[LevelSnapshot],
-        with_replay: bool,
-    ) -> (LearnerState, Option<Vec<Vec<u8>>>) {
+    fn capture(&self, levels: &[LevelSnapshot], with_replay: bool) -> Captured {
         let (curve, curve_env_steps, curve_updates) = {
             let c = self.curve.lock();
             (c.points.clone(), c.last_env_steps, c.last_updates)
@@ -569,6 +630,7 @@ impl Shared {
                 .map(|level| self.replay.table(level).to_safetensors())
                 .collect()
         });
+        let best = self.best.latest();
         let state = LearnerState {
             format: STATE_FORMAT.into(),
             format_version: STATE_VERSION,
@@ -599,18 +661,30 @@ impl Shared {
                     rng: l.rng.clone(),
                 })
                 .collect(),
+            best: best.as_ref().map(|b| BestState {
+                round: b.round,
+                episodes: b.episodes,
+                env_steps: b.env_steps,
+                success_rate: b.success_rate,
+                weights_version: b.snapshot.version,
+            }),
         };
-        (state, replay)
+        Captured {
+            state,
+            replay,
+            best: best.map(|b| b.snapshot.levels.clone()),
+        }
     }
 }
 
 impl LearnerCheckpoint {
     /// Serialises the levels' networks (no need to pause ingest for that).
-    fn of(state: LearnerState, levels: &[LevelSnapshot], replay: Option<Vec<Vec<u8>>>) -> Self {
+    fn of(captured: Captured, levels: &[LevelSnapshot]) -> Self {
         Self {
-            state,
+            state: captured.state,
             levels: levels.iter().map(|l| l.learner.to_safetensors()).collect(),
-            replay,
+            replay: captured.replay,
+            best: captured.best,
         }
     }
 }

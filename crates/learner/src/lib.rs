@@ -35,6 +35,7 @@
 //! Transports (in-process, gRPC, shared memory) are thin adapters over these methods; they live in
 //! `hac-transport`.
 
+mod best;
 mod checkpoint;
 mod published;
 mod rates;
@@ -58,6 +59,8 @@ use hac_replay::{
 use parking_lot::{Condvar, Mutex, RwLock};
 use sha2::{Digest, Sha256};
 
+use best::RecentSnapshots;
+pub use best::{BestWeights, RECENT_SNAPSHOTS};
 pub use checkpoint::{CheckpointError, LearnerCheckpoint};
 pub use published::Published;
 pub use rates::{RateWindow, TokenBucket};
@@ -417,6 +420,8 @@ struct PublisherState {
     last_publish: Instant,
     /// `version -> episodes` of every snapshot, to place evaluations on the curve.
     episodes_of: BTreeMap<u64, u64>,
+    /// The newest snapshots, one of which an evaluation may make the best.
+    recent: RecentSnapshots,
 }
 
 #[derive(Debug)]
@@ -484,6 +489,8 @@ struct Shared {
     /// Why the learner is unhealthy (a level failing, see [`MAX_DIVERGED_IN_A_ROW`]), or
     /// `None`; republished whenever that changes.
     trouble: Published<Option<String>>,
+    /// The weights of the best test round so far; republished when a round beats it.
+    best: Published<BestWeights>,
     curve: Mutex<CurveState>,
     counters: Counters,
     /// `[transitions, batches, episodes, env_steps, updates of level 0, 1, ...]` over time.
@@ -598,6 +605,8 @@ pub struct LearnerStatus {
 pub struct FinishedRun {
     pub agent: Agent,
     pub curve: Vec<RoundReport>,
+    /// The weights of the best test round, if any round was evaluated.
+    pub best: Option<Arc<BestWeights>>,
     pub status: LearnerStatus,
     /// The trainers' random streams as they stopped, level 0 first.
     rngs: Vec<Rng>,
@@ -745,6 +754,7 @@ impl Learner {
                 published_episodes: resumed.map_or(0, |r| r.published_episodes),
                 last_publish: Instant::now(),
                 episodes_of: BTreeMap::new(),
+                recent: RecentSnapshots::default(),
             }),
             learner_start: learner_start_id(),
             published_episodes: AtomicU64::new(resumed.map_or(0, |r| r.published_episodes)),
@@ -753,6 +763,7 @@ impl Learner {
             slots,
             weights: Published::default(),
             trouble: Published::default(),
+            best: Published::default(),
             curve: Mutex::new(CurveState {
                 points: resumed.map_or_else(Vec::new, |r| r.curve.clone()),
                 last_at: Instant::now(),
@@ -778,6 +789,9 @@ impl Learner {
         });
         shared.publish(false);
         shared.trouble.publish(Arc::new(None));
+        if let Some(best) = from.and_then(LearnerCheckpoint::best) {
+            shared.best.publish(Arc::new(best));
+        }
         let trainers = learners
             .into_iter()
             .zip(level_rngs)
@@ -815,6 +829,12 @@ impl Learner {
 
     pub fn options(&self) -> &LearnerOptions {
         &self.shared.options
+    }
+
+    /// The weights of the best test round so far (none before the first round): a cell
+    /// republished whenever a round beats every earlier one.
+    pub fn best(&self) -> &Published<BestWeights> {
+        &self.shared.best
     }
 
     /// The weights cell: the latest snapshot, waitable from threads and tasks.
@@ -1106,6 +1126,7 @@ impl Learner {
         FinishedRun {
             agent: Agent::from_levels(levels),
             curve: self.curve(),
+            best: self.shared.best.latest(),
             status: self.status(),
             rngs,
             shared: self.shared.clone(),
@@ -1405,10 +1426,10 @@ impl Shared {
             }
             .into());
         }
-        let episodes = {
+        let (episodes, snapshot) = {
             let publisher = self.publisher.lock();
             match publisher.episodes_of.get(&evaluation.weights_version) {
-                Some(&e) => e,
+                Some(&e) => (e, publisher.recent.get(evaluation.weights_version).cloned()),
                 None => {
                     return Err(IngestError::UnknownWeightsVersion(
                         evaluation.weights_version,
@@ -1455,6 +1476,25 @@ impl Shared {
             curve.last_at = Instant::now();
             curve.last_env_steps = env_steps;
             curve.last_updates = updates;
+            // Under the curve's lock: rounds are judged in the order they joined the curve.
+            if best::improves(self.best.latest().as_deref(), success_rate) {
+                match snapshot {
+                    Some(snapshot) => self.best.publish(Arc::new(BestWeights {
+                        round: report.round,
+                        episodes,
+                        env_steps,
+                        success_rate,
+                        snapshot,
+                    })),
+                    None => tracing::warn!(
+                        round = report.round,
+                        weights_version = evaluation.weights_version,
+                        kept = RECENT_SNAPSHOTS,
+                        "the best test round so far evaluated weights older than the snapshots kept: \
+                         the best weights stay those of an earlier round"
+                    ),
+                }
+            }
             report
         };
         tracing::debug!(
@@ -1642,14 +1682,15 @@ impl Shared {
         while publisher.episodes_of.len() > 100_000 {
             publisher.episodes_of.pop_first();
         }
-        let snapshot = WeightsSnapshot {
+        let snapshot = Arc::new(WeightsSnapshot {
             version,
             levels,
             episodes: covered,
             run_finished,
             learner_start: self.learner_start,
-        };
-        self.weights.publish(Arc::new(snapshot));
+        });
+        publisher.recent.push(snapshot.clone());
+        self.weights.publish(snapshot);
         self.published_episodes.store(covered, Ordering::Release);
         // Under the turns' lock, so that a waiter between its check and its wait still wakes.
         drop(self.turns.lock());

@@ -5,6 +5,10 @@
 //! - `curve.svg`: the learning curve, redrawn after every round;
 //! - `weights/level<i>.safetensors`: each level's actor and critic (neural agent) or Q table
 //!   (tabular agent, see `hac_tabular::checkpoint`), at the end of training;
+//! - `weights/best/`: the weights of the best test round (neural agent): `level<i>.safetensors`
+//!   holds level `i`'s actor (what a greedy policy needs) and `best.json` the round, its
+//!   training episodes, env steps, success rate and weights version ([`BestRecord`]). Written
+//!   at the end of training, and by the learner daemon whenever a round beats the best;
 //! - `summary.json`: headline figures (final and best success, episodes to 50% and 90%, time);
 //! - `checkpoints/`: the learner daemon's checkpoints ([`crate::checkpoints`]).
 
@@ -14,8 +18,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use hac_agent::{Agent, RoundReport};
+use hac_learner::BestWeights;
 use hac_tabular::TabularAgent;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::checkpoints::CheckpointStore;
 use crate::config::RunConfig;
@@ -23,6 +28,99 @@ use crate::plot;
 
 pub fn weights_dir(run: &Path) -> PathBuf {
     run.join("weights")
+}
+
+/// `weights/best/`: the weights of the run's best test round.
+pub fn best_dir(run: &Path) -> PathBuf {
+    weights_dir(run).join("best")
+}
+
+const BEST_FILE: &str = "best.json";
+
+/// `weights/best/best.json`: which test round the best weights are from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BestRecord {
+    /// 1-based, as in `curve.csv`.
+    pub round: usize,
+    /// Training episodes behind the weights (the curve's x).
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub success_rate: f32,
+    pub weights_version: u64,
+    pub levels: usize,
+}
+
+impl BestRecord {
+    pub fn of(best: &BestWeights) -> Self {
+        Self {
+            round: best.round,
+            episodes: best.episodes,
+            env_steps: best.env_steps,
+            success_rate: best.success_rate,
+            weights_version: best.snapshot.version,
+            levels: best.snapshot.levels.len(),
+        }
+    }
+}
+
+/// Writes `best` as `weights/best/` of the run in `run` (see [`RunDir::save_best`]), replacing the directory as a whole
+/// (written beside it as `best.new`, then renamed), so a reader finds either the old or the new
+/// best, never a mix.
+fn write_best(run: &Path, best: &BestWeights) -> Result<()> {
+    let dir = best_dir(run);
+    let new = dir.with_extension("new");
+    let old = dir.with_extension("old");
+    for stale in [&new, &old] {
+        if stale.exists() {
+            std::fs::remove_dir_all(stale)
+                .with_context(|| format!("removing {}", stale.display()))?;
+        }
+    }
+    std::fs::create_dir_all(&new).with_context(|| format!("creating {}", new.display()))?;
+    for (level, bytes) in best.snapshot.levels.iter().enumerate() {
+        write_file(&new.join(format!("level{level}.safetensors")), bytes)?;
+    }
+    write_file(
+        &new.join(BEST_FILE),
+        serde_json::to_string_pretty(&BestRecord::of(best))?.as_bytes(),
+    )?;
+    if dir.exists() {
+        std::fs::rename(&dir, &old).with_context(|| format!("replacing {}", dir.display()))?;
+    }
+    std::fs::rename(&new, &dir).with_context(|| format!("writing {}", dir.display()))?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+    }
+    Ok(())
+}
+
+/// Reads `weights/best/` of the run in `run`: the record and each level's actor
+/// (safetensors), level 0 first.
+pub fn load_best(run: &Path) -> Result<(BestRecord, Vec<Vec<u8>>)> {
+    let dir = best_dir(run);
+    let record_path = dir.join(BEST_FILE);
+    let text = match std::fs::read(&record_path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => anyhow::bail!(
+            "{} has no best weights ({} is missing): they are written at the end of a neural \
+             run's training once a test round was evaluated (and by the learner daemon as rounds \
+             come)",
+            run.display(),
+            record_path.display()
+        ),
+        Err(e) => {
+            return Err(e).with_context(|| format!("reading {}", record_path.display()));
+        }
+    };
+    let record: BestRecord = serde_json::from_slice(&text)
+        .with_context(|| format!("parsing {}", record_path.display()))?;
+    let levels = (0..record.levels)
+        .map(|level| {
+            let path = dir.join(format!("level{level}.safetensors"));
+            std::fs::read(&path).with_context(|| format!("reading {}", path.display()))
+        })
+        .collect::<Result<_>>()?;
+    Ok((record, levels))
 }
 
 /// A trained agent that can write its `weights/` directory.
@@ -89,6 +187,8 @@ pub struct RunDir {
     config: RunConfig,
     csv: File,
     curve: Vec<(f64, f64)>,
+    /// The round whose weights `weights/best/` holds, if written by this process.
+    best_round: Option<usize>,
 }
 
 impl RunDir {
@@ -143,6 +243,7 @@ impl RunDir {
                 .iter()
                 .map(|r| (r.episodes as f64, r.success_rate as f64))
                 .collect(),
+            best_round: None,
         };
         if !curve.is_empty() {
             dir.draw()?;
@@ -174,6 +275,15 @@ impl RunDir {
             }],
         );
         write_file(&self.path.join("curve.svg"), svg.as_bytes())
+    }
+
+    /// Writes `weights/best/` from `best`, unless it already holds that round's weights.
+    pub fn save_best(&mut self, best: &BestWeights) -> Result<()> {
+        if self.best_round != Some(best.round) {
+            write_best(&self.path, best)?;
+            self.best_round = Some(best.round);
+        }
+        Ok(())
     }
 
     /// Test rounds recorded so far.

@@ -200,6 +200,9 @@ fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Fin
     if let Some(e) = write_error {
         return Err(e);
     }
+    if let Some(best) = &trained.best {
+        dir.save_best(best)?;
+    }
     let curve = trained.curve;
     let summary = dir.finish(&trained.agent, &curve, started.elapsed().as_secs_f64())?;
     Ok(Finished {

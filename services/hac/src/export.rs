@@ -4,7 +4,8 @@
 //! The policy comes from the run's newest valid checkpoint (`<run>/checkpoints/`, written by the
 //! learner daemon; a finished run's last checkpoint holds its final weights), or `--checkpoint
 //! NAME`, or else `weights/` (what `hac train` writes). Neural runs only: a grid world's policy is
-//! its Q tables, already self-contained in `weights/level<i>.safetensors`.
+//! its Q tables, already self-contained in `weights/level<i>.safetensors`. With `--best`, the
+//! policy of the run's best test round (`weights/best/`).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -12,7 +13,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use hac_agent::{Agent, RunConfig};
 use hac_learner::LearnerCheckpoint;
-use hac_nn::Policy;
+use hac_nn::{Actor, Policy};
 use hac_run::checkpoints::CheckpointStore;
 use hac_run::run_dir;
 
@@ -26,16 +27,38 @@ pub struct ExportArgs {
     pub out: PathBuf,
     /// Export this checkpoint of the run (e.g. ckpt-000004) [default: the newest valid one, or
     /// weights/ if the run has none].
-    #[arg(long, value_name = "NAME")]
+    #[arg(long, value_name = "NAME", conflicts_with = "best")]
     pub checkpoint: Option<String>,
+    /// Export the weights of the run's best test round (`weights/best/`) instead of its last.
+    #[arg(long)]
+    pub best: bool,
 }
 
 /// Where the policy came from.
 struct Source {
     run: RunConfig,
-    agent: Agent,
+    actors: Vec<Actor>,
+    /// Updates behind each level's actor, where known (not for the best weights).
+    updates: Option<Vec<u64>>,
     weights_version: Option<u64>,
     description: String,
+}
+
+impl Source {
+    fn of_agent(
+        run: RunConfig,
+        agent: &Agent,
+        weights_version: Option<u64>,
+        description: String,
+    ) -> Self {
+        Self {
+            run,
+            actors: agent.levels().iter().map(|l| l.actor().clone()).collect(),
+            updates: Some(agent.levels().iter().map(|l| l.updates()).collect()),
+            weights_version,
+            description,
+        }
+    }
 }
 
 pub fn run(args: &ExportArgs) -> Result<()> {
@@ -53,14 +76,17 @@ pub fn run(args: &ExportArgs) -> Result<()> {
 }
 
 fn load(args: &ExportArgs) -> Result<Source> {
+    if args.best {
+        return load_best(args);
+    }
     let store = CheckpointStore::of_run(&args.run);
     let from_checkpoint = |name: String, checkpoint: LearnerCheckpoint| -> Result<Source> {
-        Ok(Source {
-            run: checkpoint.run_config()?,
-            agent: checkpoint.agent()?,
-            weights_version: Some(checkpoint.weights_version()),
-            description: format!("checkpoint {name}"),
-        })
+        Ok(Source::of_agent(
+            checkpoint.run_config()?,
+            &checkpoint.agent()?,
+            Some(checkpoint.weights_version()),
+            format!("checkpoint {name}"),
+        ))
     };
     if let Some(name) = &args.checkpoint {
         let files = store
@@ -75,6 +101,47 @@ fn load(args: &ExportArgs) -> Result<Source> {
         }
         return from_checkpoint(loaded.name, loaded.value);
     }
+    let run = neural_run(args)?;
+    let env = run.make_env()?;
+    let agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+        .context("loading the run's weights")?;
+    // The learner daemon records the final version in the summary; `hac train` has none.
+    let weights_version = std::fs::read_to_string(args.run.join("summary.json"))
+        .ok()
+        .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+        .and_then(|summary| summary["weights_version"].as_u64());
+    Ok(Source::of_agent(
+        run,
+        &agent,
+        weights_version,
+        "weights/".into(),
+    ))
+}
+
+/// The policy of the run's best test round.
+fn load_best(args: &ExportArgs) -> Result<Source> {
+    let run = neural_run(args)?;
+    let env = run.make_env()?;
+    let (record, levels) = run_dir::load_best(&args.run)?;
+    let actors = hac_actor::best_policy(levels, record.weights_version, env.spec(), run.levels)
+        .with_context(|| format!("loading {}", run_dir::best_dir(&args.run).display()))?
+        .into_actors();
+    Ok(Source {
+        run,
+        actors,
+        updates: None,
+        weights_version: Some(record.weights_version),
+        description: format!(
+            "weights/best/ (round {}, {} episodes, {:.1}% success)",
+            record.round,
+            record.episodes,
+            100.0 * record.success_rate
+        ),
+    })
+}
+
+/// The run's config, refused for a grid world.
+fn neural_run(args: &ExportArgs) -> Result<RunConfig> {
     let run = RunConfig::load_run(&args.run)?;
     if run.is_tabular() {
         bail!(
@@ -84,20 +151,7 @@ fn load(args: &ExportArgs) -> Result<Source> {
             run_dir::weights_dir(&args.run).display()
         );
     }
-    let env = run.make_env()?;
-    let agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
-        .context("loading the run's weights")?;
-    // The learner daemon records the final version in the summary; `hac train` has none.
-    let weights_version = std::fs::read_to_string(args.run.join("summary.json"))
-        .ok()
-        .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
-        .and_then(|summary| summary["weights_version"].as_u64());
-    Ok(Source {
-        run,
-        agent,
-        weights_version,
-        description: "weights/".into(),
-    })
+    Ok(run)
 }
 
 /// The policy file's contents: every level's actor and the metadata to run it elsewhere.
@@ -136,24 +190,18 @@ fn policy(source: &Source) -> Result<Policy> {
     put("max_actions", spec.max_actions.to_string());
     put("activation", "relu".into());
     put("output", "tanh(y) * output_scale + output_offset".into());
-    for (level, learner) in source.agent.levels().iter().enumerate() {
-        let dims = learner.actor().dims();
+    for (level, actor) in source.actors.iter().enumerate() {
+        let dims = actor.dims();
         let bounds = spec.level_action_bounds(level);
         put(&format!("level{level}.action_dim"), dims.action.to_string());
         put(&format!("level{level}.action_low"), list(&bounds.low));
         put(&format!("level{level}.action_high"), list(&bounds.high));
-        put(
-            &format!("level{level}.updates"),
-            learner.updates().to_string(),
-        );
+        if let Some(updates) = &source.updates {
+            put(&format!("level{level}.updates"), updates[level].to_string());
+        }
     }
     Ok(Policy {
-        actors: source
-            .agent
-            .levels()
-            .iter()
-            .map(|l| l.actor().clone())
-            .collect(),
+        actors: source.actors.clone(),
         metadata: meta,
     })
 }

@@ -291,6 +291,9 @@ struct EvalArgs {
     /// Seed of the test episodes' initial states and goals.
     #[arg(long, default_value_t = 12345)]
     seed: u64,
+    /// Evaluate the weights of the run's best test round (`weights/best/`) instead of its last.
+    #[arg(long)]
+    best: bool,
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
@@ -464,6 +467,9 @@ fn train(args: TrainArgs) -> Result<()> {
             trained.actor.episodes
         );
     }
+    if let Some(best) = &trained.best {
+        dir.save_best(best)?;
+    }
     let summary = dir.finish(
         &trained.agent,
         &trained.curve,
@@ -486,8 +492,31 @@ fn eval(args: EvalArgs) -> Result<()> {
         }
         index += 1;
     };
+    let mut weights = "weights/";
     let success = if tabular_cmd::handles(&run.env) {
+        if args.best {
+            anyhow::bail!(
+                "`{}` is a grid world learned by tabular HAC: its runs keep the last Q tables only \
+                 (--best is for neural runs)",
+                run.env
+            );
+        }
         tabular_cmd::evaluate(&args.run, &run, episodes, args.seed, on_episode)?
+    } else if args.best {
+        weights = "weights/best/";
+        let mut env = run.make_env()?;
+        let (record, levels) = run_dir::load_best(&args.run)?;
+        let mut policy =
+            hac_actor::best_policy(levels, record.weights_version, env.spec(), run.levels)
+                .with_context(|| format!("loading {}", run_dir::best_dir(&args.run).display()))?;
+        hac_agent::evaluate(
+            env.as_mut(),
+            &mut policy,
+            &run.agent,
+            episodes,
+            args.seed,
+            on_episode,
+        )
     } else {
         let mut env = run.make_env()?;
         let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
@@ -504,11 +533,11 @@ fn eval(args: EvalArgs) -> Result<()> {
     if args.json {
         println!(
             "{}",
-            serde_json::json!({"run": args.run, "env": run.env, "levels": run.levels, "episodes": episodes, "success_rate": success})
+            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "success_rate": success})
         );
     } else {
         println!(
-            "{}: {} with {} levels: success {:.1}% over {} greedy test episodes",
+            "{} ({weights}): {} with {} levels: success {:.1}% over {} greedy test episodes",
             args.run.display(),
             run.env,
             run.levels,

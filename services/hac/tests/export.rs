@@ -200,3 +200,121 @@ fn export_refuses_grid_worlds_and_names_the_q_tables() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_best_round_is_kept_evaluated_and_exported() {
+    let dir = scratch("best");
+    let run = dir.join("run");
+    let run_s = run.to_str().unwrap();
+    let o = hac(&[
+        "train",
+        "--env",
+        "pendulum",
+        "--levels",
+        "2",
+        "--episodes",
+        "30",
+        "--set",
+        "test_episodes=5",
+        "--set",
+        "exploration_episodes=10",
+        "--out",
+        run_s,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    // weights/best/ names the first round with the highest success on the curve.
+    let csv = std::fs::read_to_string(run.join("curve.csv")).unwrap();
+    let rates: Vec<f32> = csv
+        .lines()
+        .skip(1)
+        .map(|row| row.split(',').nth(3).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(rates.len(), 3, "{csv}");
+    let top = rates.iter().copied().fold(f32::MIN, f32::max);
+    let first_top = rates.iter().position(|&r| r == top).unwrap() + 1;
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("weights/best/best.json")).unwrap())
+            .unwrap();
+    assert_eq!(record["round"], first_top, "{record} vs {csv}");
+    assert_eq!(record["levels"], 2);
+    assert!((record["success_rate"].as_f64().unwrap() as f32 - top).abs() < 1e-6);
+
+    let o = hac(&[
+        "eval",
+        "--run",
+        run_s,
+        "--best",
+        "--episodes",
+        "4",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let result: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&o.stdout).trim()).unwrap();
+    assert_eq!(result["weights"], "weights/best/");
+    assert_eq!(result["episodes"], 4);
+
+    // The exported file holds the best round's actors: the same actions.
+    let file = dir.join("best.safetensors");
+    let o = hac(&[
+        "export",
+        "--run",
+        run_s,
+        "--best",
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = std::fs::read(&file).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let meta: HashMap<String, String> = header.metadata().clone().unwrap();
+    assert!(meta["source"].starts_with("weights/best/"), "{meta:?}");
+    assert_eq!(
+        meta["weights_version"],
+        record["weights_version"].to_string()
+    );
+    assert!(!meta.contains_key("level0.updates"), "{meta:?}");
+    for level in 0..2 {
+        let best =
+            std::fs::read(run.join(format!("weights/best/level{level}.safetensors"))).unwrap();
+        let mut best = hac_nn::Actor::from_safetensors(&best).unwrap();
+        let exported = read_level(&st, level);
+        let dims = best.dims();
+        let mut rng = Rng::seed_from(5);
+        for _ in 0..5 {
+            let state: Vec<f32> = (0..dims.state).map(|_| rng.uniform(-2.0, 2.0)).collect();
+            let goal: Vec<f32> = (0..dims.goal).map(|_| rng.uniform(-2.0, 2.0)).collect();
+            let mut expected = vec![0.0; dims.action];
+            best.act(&state, &goal, &mut expected);
+            let got = act(&exported, &state, &goal);
+            for (g, e) in got.iter().zip(&expected) {
+                assert!(
+                    (g - e).abs() <= 1e-4 * (1.0 + e.abs()),
+                    "level {level}: {got:?} vs {expected:?}"
+                );
+            }
+        }
+    }
+
+    // Without weights/best/ both say what is missing.
+    std::fs::remove_dir_all(run.join("weights/best")).unwrap();
+    for args in [
+        vec!["eval", "--run", run_s, "--best"],
+        vec![
+            "export",
+            "--run",
+            run_s,
+            "--best",
+            "--out",
+            file.to_str().unwrap(),
+        ],
+    ] {
+        let o = hac(&args);
+        assert!(!o.status.success(), "{args:?}");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(stderr.contains("no best weights"), "{args:?}: {stderr}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

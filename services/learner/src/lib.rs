@@ -324,7 +324,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let learner = Arc::into_inner(learner).context("the learner is still in use after shutdown")?;
     let elapsed = learner.elapsed();
     let finished = learner.shutdown();
-    run_dir::record_new(&mut dir, &finished.curve)?;
+    run_dir::record_new(&mut dir, &finished.curve, finished.best.as_deref())?;
     let summary = run_dir::finish(&dir, &finished, elapsed.as_secs_f64())?;
     checkpoints.write_final(&finished.checkpoint(checkpoints.with_replay()))?;
     tracing::info!(
@@ -433,7 +433,7 @@ async fn serve_run(
                 grace_until = Some(tokio::time::Instant::now() + args.grace_period);
             }
             () = grace_over => break,
-            _ = tick.tick() => run_dir::record_new(dir, &learner.curve())?,
+            _ = tick.tick() => run_dir::record_new(dir, &learner.curve(), learner.best().latest().as_deref())?,
             () = checkpoints.step(&learner) => {}
         }
     }
@@ -457,5 +457,5 @@ async fn serve_run(
             .context("the metrics task failed")?
             .context("serving metrics")?;
     }
-    run_dir::record_new(dir, &learner.curve())
+    run_dir::record_new(dir, &learner.curve(), learner.best().latest().as_deref())
 }

@@ -1,6 +1,7 @@
 //! What the learner daemon writes: a run directory in `hac train`'s layout
 //! ([`hac_run::run_dir::RunDir`]): `config.toml` at start, `curve.csv` and `curve.svg` as
-//! evaluations arrive, `weights/` and `summary.json` at the end. The summary adds the learner's
+//! evaluations arrive, `weights/best/` whenever a round beats the best, `weights/` and
+//! `summary.json` at the end. The summary adds the learner's
 //! ingest counts to the usual headline figures:
 //!
 //! - `episodes_ingested`: training episodes ingested (all actors; may exceed the budget by a few);
@@ -16,12 +17,20 @@
 
 use anyhow::Result;
 use hac_agent::RoundReport;
-use hac_learner::FinishedRun;
+use hac_learner::{BestWeights, FinishedRun};
 use hac_run::run_dir::{RunDir, Summary};
 use serde_json::{Map, Value, json};
 
-/// Appends the points of `curve` not recorded yet.
-pub fn record_new(dir: &mut RunDir, curve: &[RoundReport]) -> Result<()> {
+/// Appends the points of `curve` not recorded yet, and writes `weights/best/` when a round beat
+/// the best.
+pub fn record_new(
+    dir: &mut RunDir,
+    curve: &[RoundReport],
+    best: Option<&BestWeights>,
+) -> Result<()> {
+    if let Some(best) = best {
+        dir.save_best(best)?;
+    }
     for report in curve.get(dir.rounds()..).unwrap_or_default() {
         dir.record(report)?;
         tracing::info!(
