@@ -12,9 +12,14 @@
 //!   once). After `give_up_after` without an answer, the link fails with
 //!   [`LinkError::Unavailable`].
 //! - `unknown_actor` or `stale_incarnation` on any call or stream, the weights watch included (the
-//!   learner restarted and lost its registry, or the id registered again elsewhere): register again with the same [`Registration`], check that the
-//!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
-//!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
+//!   learner restarted and lost its registry, or the id registered again elsewhere): register
+//!   again with the same [`Registration`], naming the incarnation the messages are numbered under
+//!   (the learner answers with a number above it), check that the run's config digest is
+//!   unchanged (else [`LinkError::Refused`]: the run changed), renumber the unacknowledged
+//!   messages from sequence 1 under the new incarnation and resend them. Whichever task finds the
+//!   refusal registers (one at a time); the renumbering starts a new *generation* of the outbox,
+//!   and an ingest stream, an ack or a call of an older generation is dropped when it next looks,
+//!   so no message of the old numbering is sent after the new registration.
 //! - `finished`: [`LinkError::Finished`]. Any other refusal (including `unauthenticated`: a
 //!   missing or wrong token): [`LinkError::Refused`].
 //!
@@ -29,7 +34,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use hac_core::Rng;
 use hac_learner::{Published, RejectReason};
-use hac_proto::{Admission, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb};
+use hac_proto::{
+    Admission, IngestItem, IngestMessage, PreviousIncarnation, Registration, WeightsSnapshot, pb,
+};
 use parking_lot::{Condvar, Mutex};
 use prost::Message as _;
 use tokio::runtime::Runtime;
@@ -157,6 +164,10 @@ struct Outbox {
     digest: String,
     /// 0 until registered.
     incarnation: u64,
+    /// Bumped by every registration: a stream or call started under another generation is of an
+    /// older numbering, whatever its incarnation number (a restarted learner can hand out the
+    /// same number again).
+    generation: u64,
     /// Sequences `acked_through + 1 ..= acked_through + unacked.len()`, in order.
     unacked: VecDeque<Arc<pb::IngestRequest>>,
     acked_through: u64,
@@ -172,6 +183,11 @@ impl Outbox {
         usize::try_from(from)
             .ok()
             .and_then(|i| self.unacked.get(i).cloned())
+    }
+
+    /// Whether the outbox holds a message after `sent_through`.
+    fn has_after(&self, sent_through: u64) -> bool {
+        sent_through.max(self.acked_through) < self.next_sequence() - 1
     }
 
     fn next_sequence(&self) -> u64 {
@@ -268,9 +284,10 @@ impl ActorLink for GrpcLink {
     fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
         let shared = self.shared.clone();
         let channel = self.channel.clone();
-        let admission =
-            self.runtime()
-                .block_on(register_until_admitted(&shared, &channel, registration))?;
+        let request = pb::RegisterRequest::from(registration.clone());
+        let admission = self
+            .runtime()
+            .block_on(register_until_admitted(&shared, &channel, request))?;
         {
             let mut outbox = shared.outbox.lock();
             outbox.registration = Some(registration.clone());
@@ -369,9 +386,10 @@ impl ActorLink for GrpcLink {
             let mut client = learner_client(&shared, &channel);
             let mut retry = Retry::new(&shared, "turn request");
             loop {
-                let (actor_id, incarnation) = {
+                let (actor_id, incarnation, generation) = {
                     let outbox = shared.outbox.lock();
-                    (outbox.actor_id().to_string(), outbox.incarnation)
+                    let id = outbox.actor_id().to_string();
+                    (id, outbox.incarnation, outbox.generation)
                 };
                 let mut request = tonic::Request::new(pb::TurnRequest {
                     actor_id,
@@ -391,7 +409,7 @@ impl ActorLink for GrpcLink {
                 match Failure::of(&status) {
                     Failure::Retry => retry.wait(&status).await?,
                     Failure::Reregister => {
-                        reregister(&shared, &channel, incarnation).await?;
+                        reregister(&shared, &channel, generation).await?;
                         return Ok(None);
                     }
                     Failure::Finished => return Err(LinkError::Finished),
@@ -409,9 +427,10 @@ impl ActorLink for GrpcLink {
             let mut client = learner_client(&shared, &channel);
             let mut retry = Retry::new(&shared, "evaluation report");
             loop {
-                let (actor_id, incarnation) = {
+                let (actor_id, incarnation, generation) = {
                     let outbox = shared.outbox.lock();
-                    (outbox.actor_id().to_string(), outbox.incarnation)
+                    let id = outbox.actor_id().to_string();
+                    (id, outbox.incarnation, outbox.generation)
                 };
                 let message = pb::EvaluationReport {
                     actor_id,
@@ -441,7 +460,7 @@ impl ActorLink for GrpcLink {
                     // The learner forgot this actor (it restarted): register again and
                     // report again. Weights of the learner before the restart are refused as
                     // stale (above); the restarted learner's own are recorded.
-                    Failure::Reregister => reregister(&shared, &channel, incarnation).await?,
+                    Failure::Reregister => reregister(&shared, &channel, generation).await?,
                     Failure::Finished => return Err(LinkError::Finished),
                     Failure::Refused => return Err(LinkError::Refused(status.message().into())),
                 }
@@ -585,15 +604,12 @@ fn learner_client(
 async fn register_until_admitted(
     shared: &Shared,
     channel: &LinkChannel,
-    registration: &Registration,
+    request: pb::RegisterRequest,
 ) -> Result<Admission, LinkError> {
     let mut client = learner_client(shared, channel);
     let mut retry = Retry::new(shared, "register");
     loop {
-        let status = match client
-            .register(pb::RegisterRequest::from(registration.clone()))
-            .await
-        {
+        let status = match client.register(request.clone()).await {
             Ok(response) => {
                 return Admission::try_from(response.into_inner()).map_err(|e| {
                     LinkError::Refused(format!("the learner's admission is invalid: {e}"))
@@ -611,9 +627,11 @@ async fn register_until_admitted(
     }
 }
 
-/// Numbers the outbox's messages from sequence 1 under `incarnation`.
+/// Numbers the outbox's messages from sequence 1 under `incarnation`, a new generation: streams
+/// and calls of the old one end when they next look.
 fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     outbox.incarnation = incarnation;
+    outbox.generation += 1;
     stats.incarnation.store(incarnation, Ordering::Relaxed);
     outbox.acked_through = 0;
     for (sequence, msg) in (1..).zip(outbox.unacked.iter_mut()) {
@@ -624,17 +642,16 @@ fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     }
 }
 
-/// Registers again after the learner refused `failed_incarnation` as unknown or stale, unless that
-/// was already done; renumbers the outbox under the new incarnation.
-async fn reregister(
-    shared: &Shared,
-    channel: &LinkChannel,
-    failed_incarnation: u64,
-) -> Result<(), LinkError> {
+/// Registers again after the learner refused a call or stream of generation `failed` as unknown
+/// or stale, unless another task already did; renumbers the outbox under the new incarnation (a
+/// new generation). The registration names the current incarnation, so the learner answers with
+/// a number above it: messages of the old numbering still in flight on a stream being torn down
+/// are refused as stale, never taken for the new incarnation's.
+async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Result<(), LinkError> {
     let _one_at_a_time = shared.registering.lock().await;
-    let (registration, digest) = {
+    let (request, digest) = {
         let mut outbox = shared.outbox.lock();
-        if outbox.incarnation != failed_incarnation {
+        if outbox.generation != failed {
             return Ok(());
         }
         outbox.reregistrations += 1;
@@ -649,9 +666,15 @@ async fn reregister(
             .registration
             .clone()
             .ok_or_else(|| LinkError::Refused("send before register".into()))?;
-        (registration, outbox.digest.clone())
+        let mut request = pb::RegisterRequest::from(registration);
+        PreviousIncarnation {
+            incarnation: outbox.incarnation,
+            resend_from: outbox.acked_through + 1,
+        }
+        .into_request(&mut request);
+        (request, outbox.digest.clone())
     };
-    let admission = register_until_admitted(shared, channel, &registration).await?;
+    let admission = register_until_admitted(shared, channel, request.clone()).await?;
     if admission.run_config_digest != digest {
         return Err(LinkError::Refused(format!(
             "the learner runs a different config now (digest {}, registered under {digest}): \
@@ -669,7 +692,7 @@ async fn reregister(
     shared.queued.notify_one();
     shared.stats.learner_version.store(0, Ordering::Relaxed);
     tracing::info!(
-        actor = %registration.actor_id,
+        actor = %request.actor_id,
         incarnation = admission.incarnation,
         resent,
         "registered again with the learner"
@@ -692,11 +715,11 @@ impl Shared {
         self.changed.notify_all();
     }
 
-    /// Applies an ack of a stream opened under `incarnation`; false (and nothing applied) if the
-    /// outbox was renumbered since: the ack counts messages of the old numbering.
-    fn on_ack(&self, incarnation: u64, ack: &pb::IngestAck) -> bool {
+    /// Applies an ack of a stream of `generation`; false (and nothing applied) if the outbox was
+    /// renumbered since: the ack counts messages of the old numbering.
+    fn on_ack(&self, generation: u64, ack: &pb::IngestAck) -> bool {
         let mut outbox = self.outbox.lock();
-        if outbox.incarnation != incarnation {
+        if outbox.generation != generation {
             return false;
         }
         // Never past what was sent, whatever the learner says.
@@ -719,7 +742,8 @@ impl Shared {
 /// Why one ingest stream ended.
 enum StreamEnd {
     Closed,
-    Failed(Status),
+    /// The stream, of this generation, failed.
+    Failed(Status, u64),
     /// Another task registered again and renumbered the outbox: what the stream sent is
     /// numbered under the old incarnation, so a new stream starts from the oldest message.
     Renumbered,
@@ -742,15 +766,14 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
                 break;
             }
         }
-        let incarnation = shared.outbox.lock().incarnation;
-        let status = match ingest_stream(&shared, &channel, &mut retry).await {
+        let (status, generation) = match ingest_stream(&shared, &channel, &mut retry).await {
             StreamEnd::Closed => return,
             StreamEnd::Renumbered => continue,
-            StreamEnd::Failed(status) => status,
+            StreamEnd::Failed(status, generation) => (status, generation),
         };
         let outcome = match Failure::of(&status) {
             Failure::Retry => retry.wait(&status).await,
-            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
+            Failure::Reregister => reregister(&shared, &channel, generation).await,
             Failure::Finished => Err(LinkError::Finished),
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };
@@ -763,9 +786,14 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
 }
 
 /// One ingest stream: sends every unacknowledged message from the oldest on, then each new one;
-/// applies acks as they come; returns when the stream fails or the link closes.
+/// applies acks as they come; returns when the stream fails, the outbox is renumbered (another
+/// task registered again) or the link closes. The stream belongs to the generation current when
+/// it opened: it sends only messages numbered under it, and checks that under the outbox's lock
+/// each time it takes one, so a registration, its renumbering and the start of the next stream
+/// are one step as far as the learner can tell.
 async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry<'_>) -> StreamEnd {
     let mut closed = shared.closed.subscribe();
+    let opened_under = shared.outbox.lock().generation;
     let max = shared.options.max_message_bytes;
     let mut grpc = tonic::client::Grpc::new(channel.clone())
         .max_decoding_message_size(max)
@@ -788,20 +816,24 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
     };
     let mut acks = match response {
         Ok(response) => response.into_inner(),
-        Err(status) => return StreamEnd::Failed(status),
+        Err(status) => return StreamEnd::Failed(status, opened_under),
     };
     retry.answered();
-    let (mut sent_through, incarnation) = {
+    let (mut sent_through, generation) = {
         let outbox = shared.outbox.lock();
-        (outbox.acked_through, outbox.incarnation)
+        if outbox.generation != opened_under {
+            // Registered again while the stream opened: start over under the new numbering.
+            return StreamEnd::Renumbered;
+        }
+        (outbox.acked_through, outbox.generation)
     };
     loop {
         let next = {
             let outbox = shared.outbox.lock();
-            if outbox.incarnation != incarnation {
+            if outbox.generation != generation {
                 return StreamEnd::Renumbered;
             }
-            outbox.after(sent_through)
+            outbox.has_after(sent_through)
         };
         tokio::select! {
             biased;
@@ -809,23 +841,30 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
             ack = acks.message() => match ack {
                 Ok(Some(ack)) => {
                     retry.succeeded();
-                    if !shared.on_ack(incarnation, &ack) {
+                    if !shared.on_ack(generation, &ack) {
                         return StreamEnd::Renumbered;
                     }
                 }
                 Ok(None) => {
-                    return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"));
+                    return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"), generation);
                 }
-                Err(status) => return StreamEnd::Failed(status),
+                Err(status) => return StreamEnd::Failed(status, generation),
             },
-            permit = tx.reserve(), if next.is_some() => {
-                let (Ok(permit), Some(msg)) = (permit, next) else {
-                    return StreamEnd::Failed(Status::unavailable("the ingest stream closed"));
+            permit = tx.reserve(), if next => {
+                let Ok(permit) = permit else {
+                    return StreamEnd::Failed(Status::unavailable("the ingest stream closed"), generation);
                 };
-                sent_through = msg.sequence;
-                permit.send(msg);
+                // Taken and sent under the lock: never a message of another numbering.
+                let outbox = shared.outbox.lock();
+                if outbox.generation != generation {
+                    return StreamEnd::Renumbered;
+                }
+                if let Some(msg) = outbox.after(sent_through) {
+                    sent_through = msg.sequence;
+                    permit.send(msg);
+                }
             }
-            () = shared.queued.notified(), if next.is_none() => {}
+            () = shared.queued.notified(), if !next => {}
         }
     }
 }
@@ -838,15 +877,15 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
     let mut retry = Retry::new(&shared, "weights");
     let mut client = learner_client(&shared, &channel);
     loop {
-        let request = {
+        let (request, generation) = {
             let outbox = shared.outbox.lock();
-            pb::WatchWeightsRequest {
+            let request = pb::WatchWeightsRequest {
                 actor_id: outbox.actor_id().to_string(),
                 incarnation: outbox.incarnation,
                 min_version: 0,
-            }
+            };
+            (request, outbox.generation)
         };
-        let incarnation = request.incarnation;
         let watched = async {
             let mut stream = client.watch_weights(request).await?.into_inner();
             retry.answered();
@@ -892,7 +931,7 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
             // Weights go to registered actors only: a learner that restarted (or an id that
             // registered elsewhere) is answered by registering again, as the ingest task does;
             // an actor with nothing to send would otherwise wait for weights for ever.
-            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
+            Failure::Reregister => reregister(&shared, &channel, generation).await,
             Failure::Finished => return,
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };

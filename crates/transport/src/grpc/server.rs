@@ -21,8 +21,8 @@ use std::time::Duration;
 
 use hac_learner::{IngestError, Learner, RegisterError, RejectReason, RoomError};
 use hac_proto::{
-    Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, Registration, ShmOffer, WeightsWatch,
-    WireError, check_actor_id, decode_ingest, pb,
+    Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, PreviousIncarnation, Registration,
+    ShmOffer, WeightsWatch, WireError, check_actor_id, decode_ingest, pb,
 };
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -504,6 +504,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
             "register_request.actor_id",
             &request.actor_id,
         )?;
+        let previous = PreviousIncarnation::of_request(&request);
         let registration = Registration::try_from(request)
             .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         let wants_shm = registration
@@ -512,7 +513,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
             .any(|t| t == crate::shm::TRANSPORT);
         let mut admission = self
             .learner
-            .register(registration)
+            .register_again(registration, previous)
             .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         if wants_shm {
             admission.shm = self.shm_offer.as_deref().cloned();
