@@ -61,6 +61,11 @@ pub struct GrpcLinkOptions {
     /// Most messages sent and not yet acknowledged; [`ActorLink::send`] blocks while the window
     /// is full, which is how the learner's backpressure reaches the actor.
     pub window: usize,
+    /// Most messages kept until the learner says they are durable (acknowledged ones included);
+    /// [`ActorLink::send`] blocks while this many are held, so that a learner whose log falls
+    /// behind holds its actors back too. Bounds the ack-durable gap, with the learner's commit
+    /// interval.
+    pub max_held: usize,
     /// First delay before reconnecting; each failure in a row doubles it, up to `backoff_max`.
     /// Each delay is drawn uniformly from its upper half (jitter), so actors that lost the same
     /// learner do not come back in lockstep.
@@ -92,6 +97,7 @@ impl Default for GrpcLinkOptions {
             .map_or(0, |d| d.subsec_nanos());
         Self {
             window: 256,
+            max_held: 4096,
             backoff_min: Duration::from_millis(50),
             backoff_max: Duration::from_secs(5),
             connect_timeout: Duration::from_secs(5),
@@ -112,6 +118,8 @@ pub enum ConnectError {
     Endpoint(#[from] EndpointError),
     #[error("the window must be at least 1")]
     ZeroWindow,
+    #[error("max_held must be at least the window")]
+    HeldBelowWindow,
     #[error("starting the link's runtime: {0}")]
     Runtime(#[source] std::io::Error),
 }
@@ -168,8 +176,11 @@ struct Outbox {
     /// older numbering, whatever its incarnation number (a restarted learner can hand out the
     /// same number again).
     generation: u64,
-    /// Sequences `acked_through + 1 ..= acked_through + unacked.len()`, in order.
-    unacked: VecDeque<Arc<pb::IngestRequest>>,
+    /// Sequences `durable_through + 1 ..= durable_through + held.len()`, in order: every message
+    /// the learner has not said is durable, acknowledged ones included.
+    held: VecDeque<Arc<pb::IngestRequest>>,
+    /// What the learner said is durable, and stored (at least `durable_through`).
+    durable_through: u64,
     acked_through: u64,
     failure: Option<LinkError>,
     /// Re-registrations since the learner last acknowledged something.
@@ -179,19 +190,46 @@ struct Outbox {
 impl Outbox {
     /// The message after `sent_through`, if it is in the outbox.
     fn after(&self, sent_through: u64) -> Option<Arc<pb::IngestRequest>> {
-        let from = sent_through.max(self.acked_through) - self.acked_through;
+        let from = sent_through.max(self.durable_through) - self.durable_through;
         usize::try_from(from)
             .ok()
-            .and_then(|i| self.unacked.get(i).cloned())
+            .and_then(|i| self.held.get(i).cloned())
+    }
+
+    /// Puts the outbox's counts into `stats`.
+    fn report(&self, stats: &LinkStats) {
+        stats.set_unacked(self.unacked());
+        stats.set_undurable(self.held.len() - self.unacked());
+    }
+
+    /// Messages sent and not yet acknowledged.
+    fn unacked(&self) -> usize {
+        (self.next_sequence() - 1 - self.acked_through) as usize
     }
 
     /// Whether the outbox holds a message after `sent_through`.
     fn has_after(&self, sent_through: u64) -> bool {
-        sent_through.max(self.acked_through) < self.next_sequence() - 1
+        sent_through.max(self.durable_through) < self.next_sequence() - 1
     }
 
     fn next_sequence(&self) -> u64 {
-        self.acked_through + self.unacked.len() as u64 + 1
+        self.durable_through + self.held.len() as u64 + 1
+    }
+
+    /// Applies an ack's watermarks (never past what was sent, never back); returns the
+    /// transitions of the messages that became durable.
+    fn acknowledge(&mut self, acked_through: u64, durable_through: u64) -> u64 {
+        let sent = self.next_sequence() - 1;
+        self.acked_through = self.acked_through.max(acked_through.min(sent));
+        let durable = durable_through.min(self.acked_through);
+        let mut transitions = 0;
+        while self.durable_through < durable {
+            if let Some(msg) = self.held.pop_front() {
+                transitions += transitions_of(&msg);
+            }
+            self.durable_through += 1;
+        }
+        transitions
     }
 
     fn actor_id(&self) -> &str {
@@ -209,6 +247,9 @@ impl GrpcLink {
     pub fn connect(url: &str, options: GrpcLinkOptions) -> Result<Self, ConnectError> {
         if options.window == 0 {
             return Err(ConnectError::ZeroWindow);
+        }
+        if options.max_held < options.window {
+            return Err(ConnectError::HeldBelowWindow);
         }
         let endpoint = endpoint(url, options.tls.as_ref())?
             .connect_timeout(options.connect_timeout)
@@ -258,7 +299,12 @@ impl GrpcLink {
 
     /// Messages sent and not yet acknowledged.
     pub fn unacked(&self) -> usize {
-        self.shared.outbox.lock().unacked.len()
+        self.shared.outbox.lock().unacked()
+    }
+
+    /// Messages kept until the learner says they are durable (acknowledged ones included).
+    pub fn held(&self) -> usize {
+        self.shared.outbox.lock().held.len()
     }
 
     /// The incarnation messages are numbered under now (0 before registration).
@@ -323,7 +369,9 @@ impl ActorLink for GrpcLink {
             if outbox.incarnation == 0 {
                 return Err(LinkError::Refused("send before register".into()));
             }
-            if outbox.unacked.len() < shared.options.window {
+            if outbox.unacked() < shared.options.window
+                && outbox.held.len() < shared.options.max_held
+            {
                 break;
             }
             shared
@@ -333,8 +381,13 @@ impl ActorLink for GrpcLink {
         msg.actor_id = outbox.actor_id().to_string();
         msg.incarnation = outbox.incarnation;
         msg.sequence = outbox.next_sequence();
-        outbox.unacked.push_back(Arc::new(msg));
-        shared.stats.set_unacked(outbox.unacked.len());
+        let transitions = transitions_of(&msg);
+        outbox.held.push_back(Arc::new(msg));
+        outbox.report(&shared.stats);
+        shared
+            .stats
+            .sent_transitions
+            .fetch_add(transitions, Ordering::Relaxed);
         drop(outbox);
         shared.queued.notify_one();
         Ok(())
@@ -347,7 +400,7 @@ impl ActorLink for GrpcLink {
             if let Some(e) = &outbox.failure {
                 return Err(e.clone());
             }
-            if outbox.unacked.is_empty() {
+            if outbox.unacked() == 0 {
                 return Ok(());
             }
             if self
@@ -355,9 +408,31 @@ impl ActorLink for GrpcLink {
                 .changed
                 .wait_until(&mut outbox, deadline)
                 .timed_out()
-                && !outbox.unacked.is_empty()
+                && outbox.unacked() != 0
             {
-                return Err(LinkError::TimedOut(outbox.unacked.len()));
+                return Err(LinkError::TimedOut(outbox.unacked()));
+            }
+        }
+    }
+
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        let deadline = Instant::now() + timeout;
+        let mut outbox = self.shared.outbox.lock();
+        loop {
+            if let Some(e) = &outbox.failure {
+                return Err(e.clone());
+            }
+            if outbox.held.is_empty() {
+                return Ok(());
+            }
+            if self
+                .shared
+                .changed
+                .wait_until(&mut outbox, deadline)
+                .timed_out()
+                && !outbox.held.is_empty()
+            {
+                return Err(LinkError::TimedOut(outbox.held.len()));
             }
         }
     }
@@ -634,7 +709,8 @@ fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     outbox.generation += 1;
     stats.incarnation.store(incarnation, Ordering::Relaxed);
     outbox.acked_through = 0;
-    for (sequence, msg) in (1..).zip(outbox.unacked.iter_mut()) {
+    outbox.durable_through = 0;
+    for (sequence, msg) in (1..).zip(outbox.held.iter_mut()) {
         // Copies only a message still queued in a stream being torn down.
         let msg = Arc::make_mut(msg);
         msg.incarnation = incarnation;
@@ -669,7 +745,7 @@ async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Resu
         let mut request = pb::RegisterRequest::from(registration);
         PreviousIncarnation {
             incarnation: outbox.incarnation,
-            resend_from: outbox.acked_through + 1,
+            resend_from: outbox.durable_through + 1,
         }
         .into_request(&mut request);
         (request, outbox.digest.clone())
@@ -682,10 +758,19 @@ async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Resu
             admission.run_config_digest
         )));
     }
-    let resent = {
+    let (resent, kept) = {
         let mut outbox = shared.outbox.lock();
-        renumber(&mut outbox, &shared.stats, admission.incarnation);
-        outbox.unacked.len()
+        let kept = admission.incarnation == outbox.incarnation;
+        if kept {
+            // A resumed learner that recovered this incarnation: the same numbering, resent from
+            // the oldest message not durable (it acknowledges what it has as duplicates).
+            outbox.generation += 1;
+            outbox.acked_through = outbox.durable_through;
+        } else {
+            renumber(&mut outbox, &shared.stats, admission.incarnation);
+        }
+        outbox.report(&shared.stats);
+        (outbox.held.len(), kept)
     };
     // An ingest stream open under the old incarnation (another task registered again) starts
     // over once woken.
@@ -694,6 +779,7 @@ async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Resu
     tracing::info!(
         actor = %request.actor_id,
         incarnation = admission.incarnation,
+        kept,
         resent,
         "registered again with the learner"
     );
@@ -722,13 +808,11 @@ impl Shared {
         if outbox.generation != generation {
             return false;
         }
-        // Never past what was sent, whatever the learner says.
-        let through = ack.acked_through.min(outbox.next_sequence() - 1);
-        while outbox.acked_through < through {
-            outbox.unacked.pop_front();
-            outbox.acked_through += 1;
-        }
-        self.stats.set_unacked(outbox.unacked.len());
+        let transitions = outbox.acknowledge(ack.acked_through, ack.durable_through);
+        outbox.report(&self.stats);
+        self.stats
+            .durable_transitions
+            .fetch_add(transitions, Ordering::Relaxed);
         outbox.reregistrations = 0;
         drop(outbox);
         self.stats
@@ -736,6 +820,14 @@ impl Shared {
             .store(ack.weights_version, Ordering::Relaxed);
         self.changed.notify_all();
         true
+    }
+}
+
+/// The transitions an ingest message carries (0 for an episode summary).
+fn transitions_of(msg: &pb::IngestRequest) -> u64 {
+    match &msg.item {
+        Some(pb::ingest_request::Item::Batch(batch)) => u64::from(batch.count),
+        _ => 0,
     }
 }
 
@@ -757,7 +849,7 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
     loop {
         // Open a stream only when there is something to send.
         loop {
-            if shared.outbox.lock().unacked.is_empty() {
+            if shared.outbox.lock().held.is_empty() {
                 tokio::select! {
                     () = shared.queued.notified() => {}
                     () = until_set(&mut closed) => return,
@@ -825,7 +917,9 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
             // Registered again while the stream opened: start over under the new numbering.
             return StreamEnd::Renumbered;
         }
-        (outbox.acked_through, outbox.generation)
+        // From the oldest message not durable: a restarted learner may have lost what it
+        // acknowledged after its log's last commit (one that did not acknowledges duplicates).
+        (outbox.durable_through, outbox.generation)
     };
     loop {
         let next = {
