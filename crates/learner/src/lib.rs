@@ -1041,6 +1041,16 @@ impl Learner {
         self.shared.wal.as_ref().is_none_or(|wal| wal.sync(timeout))
     }
 
+    /// For tests of recovery: stops the write-ahead log without committing what waits for its
+    /// next commit, as `kill -9` would, and finishes the run. Nothing more is durable.
+    #[doc(hidden)]
+    pub fn simulate_crash(&self) {
+        if let Some(wal) = &self.shared.wal {
+            wal.abandon();
+        }
+        self.shared.finish("crashed");
+    }
+
     /// Deletes the write-ahead log's segments that `checkpoint`, now safely written, holds
     /// (everything before its cut); returns the bytes freed.
     pub fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, WalError> {

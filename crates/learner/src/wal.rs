@@ -162,6 +162,10 @@ struct Pending {
     /// When the oldest record in `buf` was appended.
     oldest: Option<Instant>,
     closing: bool,
+    /// Stop without committing the open group ([`Wal::abandon`]).
+    abandoned: bool,
+    /// Commit now, whatever the interval says ([`Wal::sync`]).
+    now: bool,
     /// The writer is writing a group now.
     writing: bool,
 }
@@ -300,11 +304,13 @@ impl Wal {
             .sum();
         let inner = Arc::new(Inner {
             pending: Mutex::new(Pending {
-                buf: Vec::with_capacity(options.commit_bytes + (1 << 20)),
+                buf: Vec::with_capacity(options.commit_bytes.min(16 << 20)),
                 next_lsn,
                 cut: None,
                 oldest: None,
                 closing: false,
+                abandoned: false,
+                now: false,
                 writing: false,
             }),
             options,
@@ -423,8 +429,9 @@ impl Wal {
     pub fn sync(&self, timeout: Duration) -> bool {
         let inner = &self.inner;
         let deadline = Instant::now() + timeout;
-        let target = inner.pending.lock().next_lsn - 1;
         let mut pending = inner.pending.lock();
+        let target = pending.next_lsn - 1;
+        pending.now = true;
         loop {
             if inner.committed_lsn.load(Ordering::Acquire) >= target {
                 return true;
@@ -452,6 +459,13 @@ impl Wal {
         }
     }
 
+    /// Stops the writer without committing the open group, as a kill would (for tests of
+    /// recovery); what was committed stays.
+    pub fn abandon(&self) {
+        self.inner.pending.lock().abandoned = true;
+        self.close();
+    }
+
     /// Commits what is appended and stops the writer.
     pub fn close(&self) {
         self.inner.pending.lock().closing = true;
@@ -471,14 +485,18 @@ impl Drop for Wal {
 impl Inner {
     /// The writer thread: commits groups (see the module docs) until closed.
     fn write_loop(&self, mut file: File, mut path: PathBuf) {
-        let mut spare: Vec<u8> = Vec::with_capacity(self.options.commit_bytes + (1 << 20));
+        let mut spare: Vec<u8> = Vec::with_capacity(self.options.commit_bytes.min(16 << 20));
         let mut written: u64 = 0;
         loop {
             let (mut group, cut, closing) = {
                 let mut pending = self.pending.lock();
                 loop {
+                    if pending.abandoned {
+                        return;
+                    }
                     let due = pending.oldest.is_some_and(|t| {
-                        t.elapsed() >= self.options.interval
+                        pending.now
+                            || t.elapsed() >= self.options.interval
                             || pending.buf.len() >= self.options.commit_bytes
                     });
                     if due || pending.closing || pending.cut.is_some() && pending.buf.is_empty() {
@@ -492,6 +510,7 @@ impl Inner {
                 }
                 let group = std::mem::replace(&mut pending.buf, std::mem::take(&mut spare));
                 pending.oldest = None;
+                pending.now = false;
                 pending.writing = true;
                 let cut = pending.cut.take();
                 let closing = pending.closing;
@@ -717,4 +736,211 @@ fn read_exact(path: &Path, into: &mut [u8]) -> Result<(), WalError> {
 fn file_name(path: &Path) -> String {
     path.file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use hac_core::{Batch, LevelDims};
+    use hac_proto::IngestItemRef;
+
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("hac-wal-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    /// Commits only on `sync`.
+    fn options(dir: &Path) -> WalOptions {
+        WalOptions {
+            commit_bytes: usize::MAX,
+            max_pending_bytes: usize::MAX,
+            ..WalOptions::new(dir, Duration::from_secs(3600))
+        }
+    }
+
+    /// Message `sequence` of actor `a`: a batch of `sequence` transitions whose states are the
+    /// sequence number.
+    fn append(wal: &Wal, sequence: u64) -> u64 {
+        let dims = LevelDims {
+            state: 2,
+            goal: 1,
+            action: 1,
+        };
+        let mut batch = Batch::zeros(dims, sequence as usize);
+        batch.states.fill(sequence as f32);
+        wal.append(
+            sequence as u32 % 3,
+            &IngestRef {
+                actor_id: "a",
+                incarnation: 7,
+                sequence,
+                item: IngestItemRef::Batch {
+                    level: 0,
+                    weights_version: 1,
+                    batch: batch.view(),
+                },
+            },
+        )
+    }
+
+    /// Every record from `from` on: (LSN, shard, sequence), each checked against its content.
+    fn read(dir: &Path, from: u64) -> (Vec<(u64, u32, u64)>, Recovered, Wal) {
+        let mut records = Vec::new();
+        let (wal, recovered) = Wal::open(options(dir), from, |r| {
+            let IngestItemRef::Batch { batch, .. } = r.message.item else {
+                panic!("a batch")
+            };
+            assert_eq!(batch.len as u64, r.message.sequence);
+            assert!(batch.states.iter().all(|&s| s == r.message.sequence as f32));
+            records.push((r.lsn, r.shard, r.message.sequence));
+        })
+        .unwrap();
+        (records, recovered, wal)
+    }
+
+    fn segments(dir: &Path) -> Vec<(u64, PathBuf)> {
+        list_segments(dir).unwrap()
+    }
+
+    #[test]
+    fn records_read_back_in_order_after_a_commit_and_the_rest_is_lost() {
+        let dir = scratch("replay");
+        let (_, _, wal) = read(&dir, 1);
+        for sequence in 1..=5 {
+            assert_eq!(append(&wal, sequence), sequence);
+        }
+        assert_eq!(wal.durable_through("a", 7), 0);
+        assert!(wal.sync(Duration::from_secs(10)));
+        assert_eq!(wal.durable_through("a", 7), 5);
+        assert_eq!(wal.durable_through("a", 8), 0, "another incarnation");
+        append(&wal, 6);
+        wal.abandon();
+        drop(wal);
+        let (records, recovered, wal) = read(&dir, 1);
+        let expected: Vec<_> = (1..=5).map(|s| (s, s as u32 % 3, s)).collect();
+        assert_eq!(records, expected);
+        assert_eq!(recovered.next_lsn, 6);
+        assert_eq!(recovered.cut_reason, None);
+        // Appending goes on with the next LSN, in a new segment.
+        assert_eq!(append(&wal, 6), 6);
+        assert!(wal.sync(Duration::from_secs(10)));
+        drop(wal);
+        let (records, _, _) = read(&dir, 4);
+        assert_eq!(
+            records.iter().map(|r| r.0).collect::<Vec<_>>(),
+            [4, 5, 6],
+            "from an LSN on"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_torn_tail_is_cut_off_never_misread() {
+        let dir = scratch("torn");
+        let (_, _, wal) = read(&dir, 1);
+        for sequence in 1..=4 {
+            append(&wal, sequence);
+        }
+        assert!(wal.sync(Duration::from_secs(10)));
+        drop(wal);
+        let (_, path) = segments(&dir).into_iter().next().unwrap();
+        let len = std::fs::metadata(&path).unwrap().len();
+        // A kill in the middle of the last record's write.
+        OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .unwrap()
+            .set_len(len - 5)
+            .unwrap();
+        let (records, recovered, wal) = read(&dir, 1);
+        assert_eq!(records.iter().map(|r| r.2).collect::<Vec<_>>(), [1, 2, 3]);
+        assert!(
+            recovered.cut_reason.as_deref().unwrap().contains("torn"),
+            "{recovered:?}"
+        );
+        assert_eq!(recovered.next_lsn, 4);
+        assert!(std::fs::metadata(&path).unwrap().len() < len - 5, "cut");
+        // The cut record's LSN is used again, by the next record.
+        assert_eq!(append(&wal, 4), 4);
+        assert!(wal.sync(Duration::from_secs(10)));
+        drop(wal);
+        let (records, recovered, _) = read(&dir, 1);
+        assert_eq!(
+            records.iter().map(|r| r.2).collect::<Vec<_>>(),
+            [1, 2, 3, 4]
+        );
+        assert_eq!(recovered.cut_reason, None);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_damaged_record_ends_the_log_there() {
+        let dir = scratch("checksum");
+        let (_, _, wal) = read(&dir, 1);
+        for sequence in 1..=3 {
+            append(&wal, sequence);
+        }
+        assert!(wal.sync(Duration::from_secs(10)));
+        drop(wal);
+        // A later segment, which must go with the damage before it.
+        let (_, _, wal) = read(&dir, 1);
+        append(&wal, 4);
+        assert!(wal.sync(Duration::from_secs(10)));
+        drop(wal);
+        let (_, path) = segments(&dir).into_iter().next().unwrap();
+        let mut bytes = std::fs::read(&path).unwrap();
+        // One bit of the second record's payload (record 1: 24 + 72 + 8 + 4 x 6 bytes).
+        let second = HEADER + (72 + 8 + 4 * 6usize).next_multiple_of(8);
+        bytes[second + HEADER + 80] ^= 1;
+        std::fs::write(&path, &bytes).unwrap();
+        let (records, recovered, _) = read(&dir, 1);
+        assert_eq!(records.iter().map(|r| r.2).collect::<Vec<_>>(), [1]);
+        assert!(
+            recovered
+                .cut_reason
+                .as_deref()
+                .unwrap()
+                .contains("checksum"),
+            "{recovered:?}"
+        );
+        assert_eq!(recovered.next_lsn, 2);
+        assert!(
+            segments(&dir).iter().all(|(first, _)| *first <= 2),
+            "the segment after the damage is gone: {:?}",
+            segments(&dir)
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_checkpoints_cut_starts_a_segment_and_truncation_drops_what_it_holds() {
+        let dir = scratch("cut");
+        let (_, _, wal) = read(&dir, 1);
+        for sequence in 1..=3 {
+            append(&wal, sequence);
+        }
+        let cut = wal.cut();
+        assert_eq!(cut, 4);
+        for sequence in 4..=5 {
+            append(&wal, sequence);
+        }
+        assert!(wal.sync(Duration::from_secs(10)));
+        let firsts: Vec<u64> = segments(&dir).iter().map(|s| s.0).collect();
+        assert_eq!(firsts, [1, 4], "a new segment at the cut");
+        let before = wal.status().bytes;
+        let freed = wal.truncate_before(cut).unwrap();
+        assert!(freed > 0);
+        assert_eq!(wal.status().bytes, before - freed);
+        assert_eq!(segments(&dir).iter().map(|s| s.0).collect::<Vec<_>>(), [4]);
+        // Truncating at the same cut again deletes nothing more (the segment being written
+        // stays).
+        assert_eq!(wal.truncate_before(cut).unwrap(), 0);
+        drop(wal);
+        let (records, recovered, _) = read(&dir, cut);
+        assert_eq!(records.iter().map(|r| r.2).collect::<Vec<_>>(), [4, 5]);
+        assert_eq!(recovered.next_lsn, 6);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

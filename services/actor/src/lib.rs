@@ -279,7 +279,9 @@ fn drive(
     })
     .with_context(|| format!("actor {}", options.actor_id))?;
     if !summary.run_finished {
-        match link.flush(args.flush_timeout) {
+        // Until durable: a learner killed after acknowledging could otherwise lose the last
+        // messages of an actor that is gone and cannot resend them.
+        match link.flush_durable(args.flush_timeout) {
             Ok(()) | Err(LinkError::Finished) => {}
             Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
         }
