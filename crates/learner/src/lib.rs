@@ -826,7 +826,9 @@ impl Learner {
             },
             wal: None,
         };
-        if let Some(r) = resumed {
+        // Only with a log: without one, actors hold only what was never acknowledged, and a
+        // registry from the checkpoint would expect them to resend what they dropped since.
+        if let (Some(r), Some(_)) = (resumed, &shared.options.wal) {
             checkpoint::restore_actors(&shared, r);
         }
         if let Some(wal_options) = shared.options.wal.clone() {

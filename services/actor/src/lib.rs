@@ -247,9 +247,13 @@ pub fn run(args: ActorArgs) -> Result<()> {
         servers.stop();
     }
     let summary = result?;
+    let link = board.snapshot();
     tracing::info!(
         actor = %actor_id,
         incarnation = summary.incarnation,
+        sent_transitions = link.sent_transitions,
+        durable_transitions = link.durable_transitions,
+        undurable = link.undurable,
         episodes = summary.episodes,
         env_steps = summary.env_steps,
         evaluations = summary.evaluations,

@@ -560,7 +560,14 @@ impl Failure {
     fn of(status: &Status) -> Self {
         match reject_reason(status) {
             Some(RejectReason::Finished) => Self::Finished,
-            Some(RejectReason::UnknownActor | RejectReason::StaleIncarnation) => Self::Reregister,
+            // A gap: a restarted learner lacks messages this link no longer holds (it said they
+            // were durable). Registering again gets a fresh incarnation, and everything held is
+            // resent under it.
+            Some(
+                RejectReason::UnknownActor
+                | RejectReason::StaleIncarnation
+                | RejectReason::SequenceGap,
+            ) => Self::Reregister,
             Some(_) => Self::Refused,
             // No reason: tonic, hyper or the network speaking, not the learner.
             None => match status.code() {

@@ -691,6 +691,15 @@ impl ActorLink for ShmLink {
         }
     }
 
+    /// Over shared memory, what is acknowledged (the shm server does not report durability);
+    /// over the gRPC fallback, durable.
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        if self.attached.is_none() {
+            return self.grpc.flush_durable(timeout);
+        }
+        self.flush(timeout)
+    }
+
     fn weights(&self) -> &Published<WeightsSnapshot> {
         if self.attached.is_some() {
             &self.weights
