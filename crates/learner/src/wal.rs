@@ -82,8 +82,8 @@ impl WalOptions {
         Self {
             dir: dir.into(),
             interval,
-            commit_bytes: 4 << 20,
-            max_pending_bytes: 64 << 20,
+            commit_bytes: 1 << 20,
+            max_pending_bytes: 16 << 20,
             segment_bytes: 64 << 20,
         }
     }

@@ -490,9 +490,13 @@ impl ShmLink {
             }
             match ack.refusal {
                 None => self.reregistrations = 0,
-                Some(RejectReason::UnknownActor | RejectReason::StaleIncarnation) => {
-                    self.reregister()?
-                }
+                // A gap: a resumed learner lacks acknowledged messages this link dropped
+                // (shared memory reports no durable watermark): a fresh incarnation.
+                Some(
+                    RejectReason::UnknownActor
+                    | RejectReason::StaleIncarnation
+                    | RejectReason::SequenceGap,
+                ) => self.reregister()?,
                 Some(RejectReason::Finished) => return Err(LinkError::Finished),
                 Some(reason) => {
                     return Err(LinkError::Refused(format!(
