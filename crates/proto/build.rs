@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 /// The status messages derive `serde::Serialize`, so that `hac status --json` prints them as
 /// they travel.
-const SERIALIZED: [&str; 8] = [
+const SERIALIZED: [&str; 9] = [
     "hac.v1.NodeStatus",
     "hac.v1.NodeStatus.node",
     "hac.v1.LearnerStatus",
@@ -19,6 +19,7 @@ const SERIALIZED: [&str; 8] = [
     "hac.v1.RegisteredActor",
     "hac.v1.EvaluationPoint",
     "hac.v1.ActorStatus",
+    "hac.v1.WalStatus",
 ];
 
 const PROTOS: [&str; 3] = [

@@ -20,25 +20,31 @@
 //!
 //! Resumed without its replay, a level starts with an empty table: the updates its trainer still
 //! owed are forgiven and new episodes earn updates once the table holds a batch again, as at the
-//! start of a run. Transitions acknowledged after the checkpoint are lost with the process that
-//! acknowledged them; actors resend only what was never acknowledged.
+//! start of a run.
+//!
+//! A learner with a write-ahead log ([`crate::wal`]) also records the log's LSN at the cut and
+//! every trainer that had stored something (id, incarnation, the sequence stored through, its
+//! counts): resuming then stores the log's records from the cut on again, exactly as ingest
+//! stored them, and recognises those incarnations when their actors register again, so that
+//! their resends of what the log did not hold are stored once. Without a log, transitions
+//! acknowledged after the checkpoint are lost with the process that acknowledged them.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use hac_agent::{Agent, RoundReport, RunConfig};
 use hac_core::{EnvSpec, Rng};
 use hac_nn::{LearnerConfig, LevelLearner, UpdateStats};
+use hac_proto::{ActorRole, WeightsSnapshot};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
+use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
-use std::sync::Arc;
-
-use hac_proto::WeightsSnapshot;
-
 use crate::{
-    BestWeights, Counters, FinishedRun, Learner, LearnerOptions, RejectReason, Shared, StartError,
+    ActorEntry, BestWeights, Counters, FinishedRun, Learner, LearnerOptions, RejectReason, Shared,
+    StartError,
 };
 
 /// Name of the state file in a checkpoint.
@@ -190,6 +196,14 @@ pub(crate) struct LearnerState {
     /// Whether `replay-level<i>.safetensors` files belong to the checkpoint.
     replay: bool,
     levels: Vec<LevelState>,
+    /// The write-ahead log's LSN at the cut: records from it on came after the checkpoint (0:
+    /// no log).
+    #[serde(default)]
+    pub(crate) wal_lsn: u64,
+    /// The trainers that had stored something, with what they had stored: a resumed learner
+    /// recognises their incarnations when they register again.
+    #[serde(default)]
+    pub(crate) actors: Vec<ActorState>,
     /// The best test round so far, whose actors are `best-level<i>.safetensors` (absent before
     /// the first round, and in checkpoints written before best weights were kept).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -204,6 +218,47 @@ struct BestState {
     env_steps: u64,
     success_rate: f32,
     weights_version: u64,
+}
+
+/// A registered trainer as a checkpoint holds it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub(crate) struct ActorState {
+    id: String,
+    hostname: String,
+    ordinal: u64,
+    incarnation: u64,
+    stored_through: u64,
+    episodes: u64,
+    env_steps: u64,
+    batches: u64,
+    transitions: u64,
+    weights_version: u64,
+}
+
+/// Puts the checkpoint's trainers into the registry of a learner being built.
+pub(crate) fn restore_actors(shared: &Shared, state: &LearnerState) {
+    let now = Instant::now();
+    let mut actors = shared.actors.write();
+    for a in &state.actors {
+        let mut entry = ActorEntry::new(
+            ActorRole::Trainer,
+            a.hostname.clone(),
+            a.ordinal,
+            a.incarnation,
+            None,
+            now,
+        );
+        entry.stored_through = a.stored_through;
+        entry.episodes = a.episodes;
+        entry.env_steps = a.env_steps;
+        entry.batches = a.batches;
+        entry.transitions = a.transitions;
+        entry.weights_version = a.weights_version;
+        actors.insert(a.id.clone(), Arc::new(Mutex::new(entry)));
+        shared
+            .next_ordinal
+            .fetch_max(a.ordinal + 1, Ordering::Relaxed);
+    }
 }
 
 impl LearnerState {
@@ -290,6 +345,12 @@ impl LearnerCheckpoint {
                 learner_start: 0,
             }),
         })
+    }
+
+    /// The write-ahead log's LSN at the checkpoint's cut (0: the learner kept no log): the log's
+    /// records before it are in the checkpoint.
+    pub fn wal_lsn(&self) -> u64 {
+        self.state.wal_lsn
     }
 
     /// Whether the replay tables were saved.
@@ -541,6 +602,11 @@ impl Learner {
 }
 
 impl FinishedRun {
+    /// Deletes the write-ahead log's segments that `checkpoint`, now safely written, holds.
+    pub fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, crate::WalError> {
+        self.shared.truncate_wal(checkpoint)
+    }
+
     /// The final state of a learner that has shut down, as a checkpoint (with the replay tables
     /// if `with_replay`). A run that was interrupted rather than completed can be resumed from
     /// it.
@@ -631,6 +697,28 @@ impl Shared {
                 .collect()
         });
         let best = self.best.latest();
+        let wal_lsn = self.wal.as_ref().map_or(0, crate::Wal::cut);
+        let mut actors: Vec<ActorState> = self
+            .actors
+            .read()
+            .iter()
+            .filter_map(|(id, entry)| {
+                let a = entry.lock();
+                (a.role == ActorRole::Trainer && a.stored_through > 0).then(|| ActorState {
+                    id: id.clone(),
+                    hostname: a.hostname.clone(),
+                    ordinal: a.ordinal,
+                    incarnation: a.incarnation,
+                    stored_through: a.stored_through,
+                    episodes: a.episodes,
+                    env_steps: a.env_steps,
+                    batches: a.batches,
+                    transitions: a.transitions,
+                    weights_version: a.weights_version,
+                })
+            })
+            .collect();
+        actors.sort_by(|a, b| a.id.cmp(&b.id));
         let state = LearnerState {
             format: STATE_FORMAT.into(),
             format_version: STATE_VERSION,
@@ -646,6 +734,8 @@ impl Shared {
             curve_env_steps,
             curve_updates,
             replay: with_replay,
+            wal_lsn,
+            actors,
             levels: levels
                 .iter()
                 .map(|l| LevelState {

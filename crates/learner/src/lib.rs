@@ -39,6 +39,7 @@ mod best;
 mod checkpoint;
 mod published;
 mod rates;
+pub mod wal;
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -50,8 +51,8 @@ use hac_agent::{Agent, LevelReport, RoundReport, RunConfig};
 use hac_core::{Batch, EnvSpec, LevelDims, LimitError, Rng, TransitionLimits};
 use hac_nn::{Diverged, LearnerBackup, LevelLearner, UpdateStats};
 use hac_proto::{
-    ActorRole, Admission, Evaluation, IngestItemRef, IngestMessage, IngestRef, Registration,
-    WeightsSnapshot, WireError, check_batch,
+    ActorRole, Admission, Evaluation, IngestItemRef, IngestMessage, IngestRef, PreviousIncarnation,
+    Registration, WeightsSnapshot, WireError, check_batch,
 };
 use hac_replay::{
     RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
@@ -64,6 +65,7 @@ pub use best::{BestWeights, RECENT_SNAPSHOTS};
 pub use checkpoint::{CheckpointError, LearnerCheckpoint};
 pub use published::Published;
 pub use rates::{RateWindow, TokenBucket};
+pub use wal::{Wal, WalError, WalOptions, WalStatus};
 
 /// The span status rates are averaged over.
 pub const RATES_WINDOW: Duration = Duration::from_secs(10);
@@ -97,6 +99,10 @@ pub struct LearnerOptions {
     /// An actor not heard from for this long is dropped from the registry (and status); if it
     /// comes back, it registers again (its link does so on `unknown_actor`).
     pub forget_actors_after: Duration,
+    /// The write-ahead log of stored messages ([`wal`]), which makes them durable between
+    /// checkpoints; `None`: no log, and a message is durable as soon as it is stored (acked),
+    /// which holds only as long as the process lives.
+    pub wal: Option<WalOptions>,
 }
 
 /// The default [`LearnerOptions::forget_actors_after`].
@@ -115,6 +121,7 @@ impl LearnerOptions {
             episodes_in_flight: 0,
             turn_lease: TURN_LEASE,
             forget_actors_after: FORGET_ACTORS_AFTER,
+            wal: None,
         }
     }
 }
@@ -135,6 +142,9 @@ pub enum StartError {
     /// The checkpoint to resume from does not fit this run.
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    /// The write-ahead log could not be read back or opened.
+    #[error(transparent)]
+    Wal(#[from] WalError),
 }
 
 /// Why a registration was refused.
@@ -391,6 +401,36 @@ struct ActorEntry {
     bucket: Option<TokenBucket>,
 }
 
+impl ActorEntry {
+    fn new(
+        role: ActorRole,
+        hostname: String,
+        ordinal: u64,
+        incarnation: u64,
+        bucket: Option<TokenBucket>,
+        now: Instant,
+    ) -> Self {
+        Self {
+            role,
+            hostname,
+            ordinal,
+            incarnation,
+            stored_through: 0,
+            registered_at: now,
+            last_seen: now,
+            episodes: 0,
+            env_steps: 0,
+            batches: 0,
+            transitions: 0,
+            duplicates: 0,
+            weights_version: 0,
+            transport: "",
+            env_steps_rate: RateWindow::new(now, 1, RATES_WINDOW),
+            bucket,
+        }
+    }
+}
+
 /// A level's trainer output, shared with ingest and the publisher.
 #[derive(Debug)]
 struct LevelSlot {
@@ -510,6 +550,8 @@ struct Shared {
     /// status's per-level totals add up to its total. Innermost: nothing is taken under it.
     counting: RwLock<()>,
     snapshots: Snapshots,
+    /// The write-ahead log (see [`LearnerOptions::wal`]).
+    wal: Option<Wal>,
 }
 
 /// A running learner; share it with `Arc`. Call [`shutdown`](Self::shutdown) to stop the
@@ -560,6 +602,11 @@ pub struct ActorStatus {
     pub transport: &'static str,
     /// Over the time since the actor's previous status sample (about [`RATES_WINDOW`]).
     pub env_steps_per_s: f64,
+    /// Every sequence of the incarnation up to this one is stored (acknowledged).
+    pub stored_through: u64,
+    /// ... and up to this one durable: in the write-ahead log on disk (or, without one, equal
+    /// to `stored_through`). `stored_through - durable_through` is the ack-durable gap.
+    pub durable_through: u64,
 }
 
 /// Ingest rates over a sliding window (about [`RATES_WINDOW`], or the time since the previous
@@ -598,6 +645,8 @@ pub struct LearnerStatus {
     pub levels: Vec<LevelStatus>,
     /// Sorted by id.
     pub actors: Vec<ActorStatus>,
+    /// The write-ahead log, if the learner keeps one.
+    pub wal: Option<WalStatus>,
 }
 
 /// What [`Learner::shutdown`] hands back; [`FinishedRun::checkpoint`] saves its final state.
@@ -734,7 +783,7 @@ impl Learner {
             .collect();
         let levels = config.levels;
         let batch_size = config.batch_size;
-        let shared = Arc::new(Shared {
+        let mut shared = Shared {
             run,
             run_toml,
             digest,
@@ -786,7 +835,47 @@ impl Learner {
                 served: Condvar::new(),
                 one_at_a_time: Mutex::new(()),
             },
-        });
+            wal: None,
+        };
+        // Only with a log: without one, actors hold only what was never acknowledged, and a
+        // registry from the checkpoint would expect them to resend what they dropped since.
+        if let (Some(r), Some(_)) = (resumed, &shared.options.wal) {
+            checkpoint::restore_actors(&shared, r);
+        }
+        if let Some(wal_options) = shared.options.wal.clone() {
+            // Everything stored after the checkpoint's cut (or since the run began) is stored
+            // again, exactly as it was; then every actor is durable through what it has stored.
+            let from = resumed.map_or(1, |r| r.wal_lsn.max(1));
+            let mut expected = from;
+            let (wal, recovered) = Wal::open(wal_options, from, |record| {
+                if record.lsn != expected {
+                    tracing::error!(
+                        expected,
+                        found = record.lsn,
+                        "the write-ahead log does not continue the checkpoint: records between \
+                         them are lost"
+                    );
+                }
+                expected = record.lsn + 1;
+                shared.replay_record(&record);
+            })?;
+            for (id, entry) in shared.actors.read().iter() {
+                let entry = entry.lock();
+                wal.set_durable(id, entry.incarnation, entry.stored_through);
+            }
+            if recovered.records > 0 || recovered.cut_reason.is_some() {
+                tracing::info!(
+                    records = recovered.records,
+                    cut_bytes = recovered.cut_bytes,
+                    transitions = shared.counters.transitions.load(Ordering::Relaxed),
+                    episodes = shared.counters.episodes.load(Ordering::Relaxed),
+                    actors = shared.actors.read().len(),
+                    "write-ahead log replayed"
+                );
+            }
+            shared.wal = Some(wal);
+        }
+        let shared = Arc::new(shared);
         shared.publish(false);
         shared.trouble.publish(Arc::new(None));
         if let Some(best) = from.and_then(LearnerCheckpoint::best) {
@@ -857,6 +946,19 @@ impl Learner {
     /// earlier incarnation, whose messages are refused from now on), the run's config and a
     /// seed derived from the run's seed, the actor's registration order and the incarnation.
     pub fn register(&self, registration: Registration) -> Result<Admission, RegisterError> {
+        self.register_again(registration, None)
+    }
+
+    /// [`register`](Self::register) for a link that registers again and names the incarnation
+    /// its messages are numbered under (`previous`): the new incarnation is above it, never the
+    /// same number, so that messages of the old numbering still in flight are refused as stale
+    /// instead of being taken for the new incarnation's (a restarted learner counts its
+    /// incarnations from where its checkpoint left off, or from 1).
+    pub fn register_again(
+        &self,
+        registration: Registration,
+        previous: Option<PreviousIncarnation>,
+    ) -> Result<Admission, RegisterError> {
         if registration.actor_id.is_empty() {
             return Err(RegisterError::EmptyActorId);
         }
@@ -864,9 +966,24 @@ impl Learner {
             return Err(RegisterError::Finished);
         }
         let shared = &self.shared;
-        let incarnation = shared.next_incarnation.fetch_add(1, Ordering::Relaxed);
         let now = Instant::now();
         shared.forget_silent_actors(now);
+        if let Some(previous) = previous {
+            if let Some(ordinal) = shared.keep_incarnation(&registration, previous, now) {
+                tracing::info!(
+                    actor = %registration.actor_id,
+                    role = ?registration.role,
+                    incarnation = previous.incarnation,
+                    resend_from = previous.resend_from,
+                    "actor registered again under its incarnation"
+                );
+                return Ok(shared.admission(previous.incarnation, ordinal));
+            }
+            shared
+                .next_incarnation
+                .fetch_max(previous.incarnation.saturating_add(1), Ordering::Relaxed);
+        }
+        let incarnation = shared.next_incarnation.fetch_add(1, Ordering::Relaxed);
         let ordinal = {
             let mut actors = shared.actors.write();
             let (ordinal, bucket) = match actors.get(&registration.actor_id) {
@@ -884,24 +1001,14 @@ impl Learner {
             });
             actors.insert(
                 registration.actor_id.clone(),
-                Arc::new(Mutex::new(ActorEntry {
-                    role: registration.role,
-                    hostname: registration.hostname.clone(),
+                Arc::new(Mutex::new(ActorEntry::new(
+                    registration.role,
+                    registration.hostname.clone(),
                     ordinal,
                     incarnation,
-                    stored_through: 0,
-                    registered_at: now,
-                    last_seen: now,
-                    episodes: 0,
-                    env_steps: 0,
-                    batches: 0,
-                    transitions: 0,
-                    duplicates: 0,
-                    weights_version: 0,
-                    transport: "",
-                    env_steps_rate: RateWindow::new(now, 1, RATES_WINDOW),
                     bucket,
-                })),
+                    now,
+                ))),
             );
             ordinal
         };
@@ -923,17 +1030,53 @@ impl Learner {
             incarnation,
             "actor registered"
         );
-        Ok(Admission {
-            incarnation,
-            run_config_toml: shared.run_toml.clone(),
-            run_config_digest: shared.digest.clone(),
-            seed: mix(shared.run.seed, ordinal, incarnation),
-            levels: shared.dims.clone(),
-            max_batch_transitions: shared.options.max_batch_transitions,
-            max_weights_lag: shared.options.max_weights_lag,
-            shm: None,
-            episodes_in_flight: shared.options.episodes_in_flight,
-        })
+        Ok(shared.admission(incarnation, ordinal))
+    }
+
+    /// The highest sequence of `actor_id`'s `incarnation` that is durable: in the write-ahead log
+    /// on disk (or recovered from it and the checkpoint), so that a learner killed now and
+    /// resumed still has it. Without a log, what is stored (acknowledged). 0 for an unknown
+    /// actor or another incarnation.
+    pub fn durable_through(&self, actor_id: &str, incarnation: u64) -> u64 {
+        match &self.shared.wal {
+            Some(wal) => wal.durable_through(actor_id, incarnation),
+            None => self.shared.actor(actor_id).map_or(0, |entry| {
+                let entry = entry.lock();
+                if entry.incarnation == incarnation {
+                    entry.stored_through
+                } else {
+                    0
+                }
+            }),
+        }
+    }
+
+    /// Published after every commit of the write-ahead log (`None` without one: what is stored is
+    /// durable at once): transports wait on it to tell actors that durability advanced.
+    pub fn durable_commits(&self) -> Option<&Published<u64>> {
+        self.shared.wal.as_ref().map(Wal::commits)
+    }
+
+    /// Waits until every message stored so far is in the write-ahead log on disk (true at once
+    /// without one); false if `timeout` passed first or the log failed.
+    pub fn sync_wal(&self, timeout: Duration) -> bool {
+        self.shared.wal.as_ref().is_none_or(|wal| wal.sync(timeout))
+    }
+
+    /// For tests of recovery: stops the write-ahead log without committing what waits for its
+    /// next commit, as `kill -9` would, and finishes the run. Nothing more is durable.
+    #[doc(hidden)]
+    pub fn simulate_crash(&self) {
+        if let Some(wal) = &self.shared.wal {
+            wal.abandon();
+        }
+        self.shared.finish("crashed");
+    }
+
+    /// Deletes the write-ahead log's segments that `checkpoint`, now safely written, holds
+    /// (everything before its cut); returns the bytes freed.
+    pub fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, WalError> {
+        self.shared.truncate_wal(checkpoint)
     }
 
     /// Backpressure: true if ingest may accept more now. Ingest paths call this (or
@@ -1190,12 +1333,10 @@ impl Shared {
         if self.finished.load(Ordering::Acquire) {
             return Err(IngestError::Finished);
         }
-        match msg.item {
-            IngestItemRef::Batch {
-                level,
-                weights_version,
-                batch,
-            } => {
+        // Admission by meaning: nothing below may fail, so what the log holds is exactly what
+        // is stored.
+        let shard = match msg.item {
+            IngestItemRef::Batch { level, batch, .. } => {
                 check_batch(level, batch, &self.dims, self.options.max_batch_transitions)?;
                 self.limits[level]
                     .check(&batch)
@@ -1203,10 +1344,59 @@ impl Shared {
                         actor: msg.actor_id.to_string(),
                         source,
                     })?;
-                let table = self.replay.table(level);
                 // Each actor starts at its own shard and moves on by one per batch: writers
                 // rarely meet, and one actor alone still fills every shard.
-                let shard = (actor.ordinal as usize + actor.batches as usize) % table.shard_count();
+                (actor.ordinal as usize + actor.batches as usize)
+                    % self.replay.table(level).shard_count()
+            }
+            IngestItemRef::Episode { env_steps, .. } => {
+                if env_steps > self.max_episode_actions {
+                    return Err(IngestError::EpisodeTooLong {
+                        actor: msg.actor_id.to_string(),
+                        got: env_steps,
+                        max: self.max_episode_actions,
+                    });
+                }
+                0
+            }
+        };
+        if let Some(wal) = &self.wal {
+            wal.append(shard as u32, msg);
+        }
+        let episode = self.store(&mut actor, msg, shard);
+        if episode {
+            let incarnation = actor.incarnation;
+            drop(actor);
+            {
+                // The turn this episode was played in (if any) is used up; the episode counts
+                // as in flight until it is trained on.
+                let mut turns = self.turns.lock();
+                if turns
+                    .holders
+                    .get(msg.actor_id)
+                    .is_some_and(|&(held, _)| held == incarnation)
+                {
+                    turns.holders.remove(msg.actor_id);
+                }
+            }
+            self.count_episode();
+            self.maybe_publish();
+        }
+        Ok(Stored::New)
+    }
+
+    /// Stores an admitted message of `actor` (a batch into `shard` of its level's table) and
+    /// counts it; true for an episode summary, whose effects on the rate limiters follow
+    /// ([`count_episode`](Self::count_episode)) once the actor's lock is released.
+    fn store(&self, actor: &mut ActorEntry, msg: &IngestRef<'_>, shard: usize) -> bool {
+        let counters = &self.counters;
+        let episode = match msg.item {
+            IngestItemRef::Batch {
+                level,
+                weights_version,
+                batch,
+            } => {
+                let table = self.replay.table(level);
                 actor.batches += 1;
                 self.limiters[level].record_insert(batch.len);
                 {
@@ -1219,19 +1409,13 @@ impl Shared {
                 }
                 actor.transitions += batch.len as u64;
                 actor.weights_version = actor.weights_version.max(weights_version);
+                false
             }
             IngestItemRef::Episode {
                 env_steps,
                 success,
                 weights_version,
             } => {
-                if env_steps > self.max_episode_actions {
-                    return Err(IngestError::EpisodeTooLong {
-                        actor: msg.actor_id.to_string(),
-                        got: env_steps,
-                        max: self.max_episode_actions,
-                    });
-                }
                 actor.episodes += 1;
                 actor.env_steps += env_steps;
                 actor.weights_version = actor.weights_version.max(weights_version);
@@ -1240,37 +1424,128 @@ impl Shared {
                     .successes
                     .fetch_add(u64::from(success), Ordering::Relaxed);
                 counters.env_steps.fetch_add(env_steps, Ordering::Relaxed);
-                actor.stored_through = msg.sequence;
-                let incarnation = actor.incarnation;
-                drop(actor);
-                {
-                    // The turn this episode was played in (if any) is used up; the episode
-                    // counts as in flight until it is trained on.
-                    let mut turns = self.turns.lock();
-                    if turns
-                        .holders
-                        .get(msg.actor_id)
-                        .is_some_and(|&(held, _)| held == incarnation)
-                    {
-                        turns.holders.remove(msg.actor_id);
-                    }
-                }
-                for level in 0..self.limiters.len() {
-                    self.limiters[level].record_episode();
-                    // A level with nothing owed (its table is still below one batch, or its
-                    // trainer is idle) covers the episode at once.
-                    let mut slot = self.slots[level].lock();
-                    let status = self.limiters[level].status();
-                    if status.updates == slot.completed && status.deficit < 1.0 {
-                        slot.covered_episodes = slot.covered_episodes.max(status.episodes);
-                    }
-                }
-                self.maybe_publish();
-                return Ok(Stored::New);
+                true
+            }
+        };
+        actor.stored_through = msg.sequence;
+        episode
+    }
+
+    /// An episode summary was stored: every level's rate limiter owes its updates.
+    fn count_episode(&self) {
+        for level in 0..self.limiters.len() {
+            self.limiters[level].record_episode();
+            // A level with nothing owed (its table is still below one batch, or its trainer is
+            // idle) covers the episode at once.
+            let mut slot = self.slots[level].lock();
+            let status = self.limiters[level].status();
+            if status.updates == slot.completed && status.deficit < 1.0 {
+                slot.covered_episodes = slot.covered_episodes.max(status.episodes);
             }
         }
-        actor.stored_through = msg.sequence;
-        Ok(Stored::New)
+    }
+
+    /// Stores a message read back from the write-ahead log, as ingest stored it (same shard,
+    /// same counts); registers its actor as a trainer if the registry does not know it yet, or
+    /// under the record's incarnation if it was a newer one.
+    fn replay_record(&self, record: &wal::Record<'_>) {
+        let msg = &record.message;
+        let now = Instant::now();
+        let entry = {
+            let mut actors = self.actors.write();
+            actors
+                .entry(msg.actor_id.to_string())
+                .or_insert_with(|| {
+                    let ordinal = self.next_ordinal.fetch_add(1, Ordering::Relaxed);
+                    Arc::new(Mutex::new(ActorEntry::new(
+                        ActorRole::Trainer,
+                        String::new(),
+                        ordinal,
+                        msg.incarnation,
+                        None,
+                        now,
+                    )))
+                })
+                .clone()
+        };
+        let mut actor = entry.lock();
+        if actor.incarnation != msg.incarnation {
+            let (ordinal, bucket) = (actor.ordinal, actor.bucket.take());
+            *actor = ActorEntry::new(
+                ActorRole::Trainer,
+                String::new(),
+                ordinal,
+                msg.incarnation,
+                bucket,
+                now,
+            );
+        }
+        self.next_incarnation
+            .fetch_max(msg.incarnation.saturating_add(1), Ordering::Relaxed);
+        if msg.sequence != actor.stored_through + 1 {
+            tracing::warn!(
+                actor = %msg.actor_id,
+                sequence = msg.sequence,
+                expected = actor.stored_through + 1,
+                "write-ahead log record out of sequence"
+            );
+        }
+        self.counters.messages.fetch_add(1, Ordering::Relaxed);
+        let shard = match msg.item {
+            IngestItemRef::Batch { level, .. } if level < self.dims.len() => {
+                (record.shard as usize) % self.replay.table(level).shard_count()
+            }
+            _ => 0,
+        };
+        if self.store(&mut actor, msg, shard) {
+            drop(actor);
+            self.count_episode();
+        }
+    }
+
+    /// Keeps `previous` for an actor registering again if the registry knows it under exactly
+    /// that incarnation with every sequence before `previous.resend_from` stored (a resumed
+    /// learner recovered it); its ordinal then.
+    fn keep_incarnation(
+        &self,
+        registration: &Registration,
+        previous: PreviousIncarnation,
+        now: Instant,
+    ) -> Option<u64> {
+        let entry = self.actor(&registration.actor_id)?;
+        let mut actor = entry.lock();
+        let keep = actor.incarnation == previous.incarnation
+            && previous.resend_from <= actor.stored_through + 1
+            && (actor.role == registration.role || actor.hostname.is_empty());
+        if !keep {
+            return None;
+        }
+        actor.role = registration.role;
+        actor.hostname.clone_from(&registration.hostname);
+        actor.last_seen = now;
+        Some(actor.ordinal)
+    }
+
+    /// What an actor admitted under `incarnation` is told.
+    fn admission(&self, incarnation: u64, ordinal: u64) -> Admission {
+        Admission {
+            incarnation,
+            run_config_toml: self.run_toml.clone(),
+            run_config_digest: self.digest.clone(),
+            seed: mix(self.run.seed, ordinal, incarnation),
+            levels: self.dims.clone(),
+            max_batch_transitions: self.options.max_batch_transitions,
+            max_weights_lag: self.options.max_weights_lag,
+            shm: None,
+            episodes_in_flight: self.options.episodes_in_flight,
+        }
+    }
+
+    fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, WalError> {
+        match &self.wal {
+            Some(wal) if checkpoint.wal_lsn() > 0 => wal.truncate_before(checkpoint.wal_lsn()),
+            _ => Ok(0),
+        }
     }
 
     fn await_turn(
@@ -1781,6 +2056,11 @@ impl Shared {
                     weights_lag: weights_version.saturating_sub(a.weights_version),
                     transport: a.transport,
                     env_steps_per_s: rate[0],
+                    stored_through: a.stored_through,
+                    durable_through: match &self.wal {
+                        Some(wal) => wal.durable_through(id, a.incarnation),
+                        None => a.stored_through,
+                    },
                 }
             })
             .collect();
@@ -1833,6 +2113,7 @@ impl Shared {
             },
             levels,
             actors,
+            wal: self.wal.as_ref().map(Wal::status),
         }
     }
 }

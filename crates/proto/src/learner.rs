@@ -30,6 +30,34 @@ pub struct Registration {
     pub transports: Vec<String>,
 }
 
+/// A link registering again names the incarnation its messages are numbered under
+/// (`pb::RegisterRequest.previous_incarnation` and `resend_from`): a learner that knows the actor
+/// under it with every sequence before `resend_from` stored keeps it; otherwise it answers with a
+/// fresh incarnation above it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PreviousIncarnation {
+    /// Never 0.
+    pub incarnation: u64,
+    /// The oldest sequence the actor still holds and resends first (at least 1).
+    pub resend_from: u64,
+}
+
+impl PreviousIncarnation {
+    /// The previous incarnation a registration request names, if any.
+    pub fn of_request(msg: &pb::RegisterRequest) -> Option<Self> {
+        (msg.previous_incarnation != 0).then(|| Self {
+            incarnation: msg.previous_incarnation,
+            resend_from: msg.resend_from.max(1),
+        })
+    }
+
+    /// Puts it into a registration request.
+    pub fn into_request(self, msg: &mut pb::RegisterRequest) {
+        msg.previous_incarnation = self.incarnation;
+        msg.resend_from = self.resend_from;
+    }
+}
+
 /// The learner's answer to a [`Registration`] (`pb::RegisterResponse`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Admission {
@@ -129,6 +157,8 @@ impl From<Registration> for pb::RegisterRequest {
             role: pb::ActorRole::from(registration.role).into(),
             hostname: registration.hostname,
             transports: registration.transports,
+            previous_incarnation: 0,
+            resend_from: 0,
         }
     }
 }

@@ -37,14 +37,14 @@ pub use batch::{
 };
 pub use error::WireError;
 pub use ingest::{IngestItem, IngestItemRef, IngestMessage, IngestRef, decode_ingest};
-pub use learner::{ActorRole, Admission, Evaluation, Registration, ShmOffer};
+pub use learner::{ActorRole, Admission, Evaluation, PreviousIncarnation, Registration, ShmOffer};
 pub use limits::{
     Clipped, ECHO_BYTES, MAX_ACTOR_ID_BYTES, MAX_HOSTNAME_BYTES, MAX_TRANSPORT_NAME_BYTES,
     MAX_TRANSPORTS, check_actor_id,
 };
 pub use packed::{
-    PACKED_ALIGNMENT, max_packed_ingest_len, pack_ingest, pack_weights, packed_ingest_len,
-    packed_weights_len, unpack_ingest, unpack_weights,
+    PACKED_ALIGNMENT, max_packed_ingest_len, pack_ingest, pack_weights, packed_ingest_identity,
+    packed_ingest_len, packed_weights_len, unpack_ingest, unpack_weights,
 };
 pub use weights::{WeightsSnapshot, WeightsWatch};
 

@@ -226,6 +226,20 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
     })
 }
 
+/// The actor id, incarnation and sequence of a packed ingest message, read from its header
+/// alone (any alignment; the rest is not checked).
+pub fn packed_ingest_identity(bytes: &[u8]) -> Result<(&str, u64, u64), WireError> {
+    if bytes.len() < INGEST_HEADER || bytes[0..4] != INGEST_MAGIC {
+        return Err(packed("not an ingest message"));
+    }
+    let id_len = usize::from(u16::from_ne_bytes([bytes[6], bytes[7]]));
+    let id = bytes
+        .get(INGEST_HEADER..INGEST_HEADER + id_len)
+        .ok_or_else(|| packed("the actor id runs past the message"))?;
+    let actor_id = std::str::from_utf8(id).map_err(|_| packed("the actor id is not UTF-8"))?;
+    Ok((actor_id, u64_at(bytes, 8), u64_at(bytes, 16)))
+}
+
 /// Bytes [`pack_weights`] writes for `snapshot`.
 pub fn packed_weights_len(snapshot: &WeightsSnapshot) -> usize {
     WEIGHTS_HEADER + 8 * snapshot.levels.len() + snapshot.levels.iter().map(Vec::len).sum::<usize>()

@@ -78,6 +78,13 @@ pub trait ActorLink: Send {
     /// ([`LinkError::TimedOut`]).
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError>;
 
+    /// Blocks until every item sent so far is durable (in the learner's write-ahead log, see
+    /// `hac_learner::wal`; without a log, acknowledged), or `timeout` passes. Links that do not
+    /// track durability wait for acknowledgements.
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        self.flush(timeout)
+    }
+
     /// The latest weights the link has received, waitable.
     fn weights(&self) -> &Published<WeightsSnapshot>;
 
@@ -112,8 +119,13 @@ pub trait ActorLink: Send {
 pub struct LinkStats {
     incarnation: AtomicU64,
     unacked: AtomicU64,
+    undurable: AtomicU64,
     reconnects: AtomicU64,
     learner_version: AtomicU64,
+    /// Transitions handed to the link, and of those the ones the learner said are durable, over
+    /// every incarnation.
+    sent_transitions: AtomicU64,
+    durable_transitions: AtomicU64,
 }
 
 impl LinkStats {
@@ -125,6 +137,23 @@ impl LinkStats {
     /// Messages sent and not yet acknowledged.
     pub fn unacked(&self) -> u64 {
         self.unacked.load(Ordering::Relaxed)
+    }
+
+    /// Messages acknowledged and not yet durable (the ack-durable gap), kept to be resent to a
+    /// restarted learner.
+    pub fn undurable(&self) -> u64 {
+        self.undurable.load(Ordering::Relaxed)
+    }
+
+    /// Transitions handed to the link so far.
+    pub fn sent_transitions(&self) -> u64 {
+        self.sent_transitions.load(Ordering::Relaxed)
+    }
+
+    /// Transitions the learner said are durable so far (links that do not track durability
+    /// report 0).
+    pub fn durable_transitions(&self) -> u64 {
+        self.durable_transitions.load(Ordering::Relaxed)
     }
 
     /// Attempts to reach the learner again after a failed call or stream.
@@ -139,5 +168,9 @@ impl LinkStats {
 
     fn set_unacked(&self, n: usize) {
         self.unacked.store(n as u64, Ordering::Relaxed);
+    }
+
+    fn set_undurable(&self, n: usize) {
+        self.undurable.store(n as u64, Ordering::Relaxed);
     }
 }

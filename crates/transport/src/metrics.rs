@@ -408,7 +408,7 @@ pub fn learner_metrics(learner: &Learner) -> String {
         m.sample("hac_learner_actors", &[("role", role_name(role))], n as f64);
     }
     type ActorField = fn(&hac_learner::ActorStatus) -> f64;
-    let actor_families: [(&str, Kind, &str, ActorField); 5] = [
+    let actor_families: [(&str, Kind, &str, ActorField); 6] = [
         (
             "hac_learner_actor_episodes_total",
             Counter,
@@ -439,6 +439,12 @@ pub fn learner_metrics(learner: &Learner) -> String {
             "Weights versions an actor is behind the newest.",
             |a| a.weights_lag as f64,
         ),
+        (
+            "hac_learner_actor_undurable_messages",
+            Gauge,
+            "Messages of an actor stored (acknowledged) and not yet durable in the write-ahead log.",
+            |a| a.stored_through.saturating_sub(a.durable_through) as f64,
+        ),
     ];
     for (name, kind, help, field) in actor_families {
         m.family(name, kind, help);
@@ -452,6 +458,26 @@ pub fn learner_metrics(learner: &Learner) -> String {
     }
 
     let (evaluations, last) = learner.recent_curve(1);
+    if let Some(wal) = &status.wal {
+        m.single(
+            "hac_learner_wal_bytes",
+            Gauge,
+            "Bytes of the write-ahead log on disk (what came after the newest checkpoint).",
+            wal.bytes as f64,
+        );
+        m.single(
+            "hac_learner_wal_commits_total",
+            Counter,
+            "Commits (fsyncs) of the write-ahead log.",
+            wal.commits as f64,
+        );
+        m.single(
+            "hac_learner_wal_undurable_records",
+            Gauge,
+            "Records appended to the write-ahead log and not yet committed.",
+            wal.appended.saturating_sub(wal.committed) as f64,
+        );
+    }
     m.single(
         "hac_learner_evaluations_total",
         Counter,
@@ -552,6 +578,11 @@ pub fn actor_metrics(s: &ActorNodeStatus) -> String {
             "hac_actor_unacked_messages",
             "Messages sent and not yet acknowledged by the learner.",
             s.unacked,
+        ),
+        (
+            "hac_actor_undurable_messages",
+            "Messages acknowledged and not yet durable (kept to be resent to a restarted learner).",
+            s.undurable,
         ),
     ] {
         m.single(name, Gauge, help, value as f64);

@@ -247,9 +247,13 @@ pub fn run(args: ActorArgs) -> Result<()> {
         servers.stop();
     }
     let summary = result?;
+    let link = board.snapshot();
     tracing::info!(
         actor = %actor_id,
         incarnation = summary.incarnation,
+        sent_transitions = link.sent_transitions,
+        durable_transitions = link.durable_transitions,
+        undurable = link.undurable,
         episodes = summary.episodes,
         env_steps = summary.env_steps,
         evaluations = summary.evaluations,
@@ -279,7 +283,9 @@ fn drive(
     })
     .with_context(|| format!("actor {}", options.actor_id))?;
     if !summary.run_finished {
-        match link.flush(args.flush_timeout) {
+        // Until durable: a learner killed after acknowledging could otherwise lose the last
+        // messages of an actor that is gone and cannot resend them.
+        match link.flush_durable(args.flush_timeout) {
             Ok(()) | Err(LinkError::Finished) => {}
             Err(e) => tracing::warn!(error = %e, "stopping with messages unacknowledged"),
         }

@@ -171,6 +171,9 @@ impl Board {
             learner_weights_version: stat(LinkStats::learner_version),
             unacked: stat(LinkStats::unacked),
             reconnects: stat(LinkStats::reconnects),
+            undurable: stat(LinkStats::undurable),
+            sent_transitions: stat(LinkStats::sent_transitions),
+            durable_transitions: stat(LinkStats::durable_transitions),
         }
     }
 }
@@ -235,6 +238,10 @@ impl ActorLink for Observed<'_> {
 
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
         self.inner.flush(timeout)
+    }
+
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        self.inner.flush_durable(timeout)
     }
 
     fn weights(&self) -> &Published<WeightsSnapshot> {

@@ -8,6 +8,7 @@
 //! stored), ack latency p50/p99 (send to cumulative ack), and a check that the learner stored
 //! exactly what was acknowledged (no loss, no duplicates).
 
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -15,7 +16,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use hac_agent::RunConfig;
 use hac_core::{Batch, LevelDims};
-use hac_learner::{Learner, LearnerOptions, LearnerStatus};
+use hac_learner::{Learner, LearnerOptions, LearnerStatus, WalOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 use serde::Serialize;
 
@@ -53,6 +54,9 @@ pub struct IngestBench {
     pub batch: usize,
     pub window: usize,
     pub json: bool,
+    /// The learner's write-ahead log commit interval, as the daemon's `--durable-interval`
+    /// in seconds (the log goes to a temporary directory); zero: no log.
+    pub durable_interval: f64,
 }
 
 /// One bench result, as printed.
@@ -176,10 +180,11 @@ pub fn percentiles(samples: &mut [u32]) -> (f64, f64) {
 }
 
 /// Starts the bench learner.
-pub fn bench_learner(max_batch: usize) -> Result<Arc<Learner>> {
+pub fn bench_learner(max_batch: usize, wal: Option<(&Path, Duration)>) -> Result<Arc<Learner>> {
     let run = bench_run()?;
     let mut options = LearnerOptions::for_run(&run);
     options.max_batch_transitions = options.max_batch_transitions.max(max_batch);
+    options.wal = wal.map(|(dir, interval)| WalOptions::new(dir, interval));
     Ok(Arc::new(
         Learner::start(run, options).context("starting the bench learner")?,
     ))
@@ -197,7 +202,7 @@ pub fn run_weights(
     if watchers == 0 || versions == 0 {
         bail!("--actors and --versions must be at least 1");
     }
-    let learner = bench_learner(1)?;
+    let learner = bench_learner(1, None)?;
     let interval = Duration::from_millis(interval_ms);
     let r = match transport {
         WeightsTransport::Grpc => crate::bench_grpc::fanout(&learner, watchers, versions, interval),
@@ -236,14 +241,19 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
     if !(bench.seconds.is_finite() && bench.seconds > 0.0) {
         bail!("--seconds must be a positive number");
     }
+    let durable_interval = Duration::try_from_secs_f64(bench.durable_interval)
+        .map_err(|e| anyhow::anyhow!("--durable-interval {}: {e}", bench.durable_interval))?;
     let transports = match bench.transport {
         Transport::All => vec![Transport::InProcess, Transport::Grpc, Transport::Shm],
         one => vec![one],
     };
     let mut reports = Vec::new();
     for transport in transports {
-        // A fresh learner each, so that its counters are the bench's.
-        let learner = bench_learner(bench.batch)?;
+        // A fresh learner each, so that its counters are the bench's (and a fresh log).
+        let wal_dir = std::env::temp_dir().join(format!("hac-bench-wal-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&wal_dir);
+        let wal = (!durable_interval.is_zero()).then(|| (wal_dir.clone(), durable_interval));
+        let learner = bench_learner(bench.batch, wal.as_ref().map(|(d, i)| (d.as_path(), *i)))?;
         if !bench.json {
             eprintln!(
                 "bench ingest: {transport:?}, {} actors, batches of {}, window {}, {} s",
@@ -260,6 +270,7 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
         if let Some(learner) = Arc::into_inner(learner) {
             learner.shutdown();
         }
+        let _ = std::fs::remove_dir_all(&wal_dir);
         if report.transitions_stored != report.transitions_acked || report.duplicates != 0 {
             bail!(
                 "{transport:?}: the learner stored {} transitions but {} were acknowledged ({} \

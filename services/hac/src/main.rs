@@ -118,6 +118,10 @@ enum BenchCommand {
         /// Print one JSON object instead of a table.
         #[arg(long)]
         json: bool,
+        /// Seconds between commits of the learner's write-ahead log, as the learner daemon's
+        /// flag (the log goes to a temporary directory, removed after); 0: no log.
+        #[arg(long, value_name = "SECS", default_value_t = 0.1)]
+        durable_interval: f64,
     },
     /// Weights fan-out: the learner publishes new versions (pendulum, 2 levels) to many
     /// actors' weights watchers; prints the publication-to-receipt delay p50/p99.
@@ -369,6 +373,7 @@ fn main() {
             batch,
             window,
             json,
+            durable_interval,
         }) => bench::run_ingest(&bench::IngestBench {
             transport,
             actors,
@@ -376,6 +381,7 @@ fn main() {
             batch,
             window,
             json,
+            durable_interval,
         }),
         Command::Render(args) => render::run(&args),
         Command::Export(args) => export::run(&args),

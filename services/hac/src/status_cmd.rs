@@ -352,6 +352,22 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
             s.episodes_in_flight, s.turns_held, s.turns_waiting, s.turns_granted, s.turns_expired
         );
     }
+    match &s.wal {
+        Some(w) => {
+            let _ = writeln!(
+                out,
+                "write-ahead log: {} in {} segments, {} of {} records durable, {} commits (last {}){}",
+                bytes(w.bytes),
+                w.segments,
+                w.committed,
+                w.appended,
+                w.commits,
+                duration(w.last_commit_seconds),
+                if w.failed { "  FAILED" } else { "" }
+            );
+        }
+        None => out.push_str("write-ahead log: off (durable = acknowledged)\n"),
+    }
     out.push('\n');
     if s.actors.is_empty() {
         out.push_str("actors: none registered\n");
@@ -369,6 +385,8 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
                 "env steps/s",
                 "weights",
                 "lag",
+                "acked",
+                "durable",
             ]
             .map(String::from)
             .to_vec(),
@@ -390,6 +408,8 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
                 rate(a.env_steps_per_second),
                 format!("v{}", a.weights_version),
                 a.weights_lag.to_string(),
+                a.stored_through.to_string(),
+                a.durable_through.to_string(),
             ]);
         }
         table(&mut out, &rows);
@@ -423,6 +443,18 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
     out
 }
 
+/// A byte count in KiB, MiB or GiB.
+fn bytes(n: u64) -> String {
+    let n = n as f64;
+    if n >= f64::from(1 << 30) {
+        format!("{:.1} GiB", n / f64::from(1 << 30))
+    } else if n >= f64::from(1 << 20) {
+        format!("{:.1} MiB", n / f64::from(1 << 20))
+    } else {
+        format!("{:.1} KiB", n / 1024.0)
+    }
+}
+
 fn actor_table(a: &pb::ActorStatus) -> String {
     let mut out = String::new();
     let _ = writeln!(
@@ -436,7 +468,7 @@ fn actor_table(a: &pb::ActorStatus) -> String {
     );
     let _ = writeln!(
         out,
-        "learner {}  transport {}  incarnation {}  reconnects {}  unacked {}",
+        "learner {}  transport {}  incarnation {}  reconnects {}  unacked {}  undurable {}",
         a.learner,
         if a.transport.is_empty() {
             "-"
@@ -445,7 +477,13 @@ fn actor_table(a: &pb::ActorStatus) -> String {
         },
         a.incarnation,
         a.reconnects,
-        a.unacked
+        a.unacked,
+        a.undurable
+    );
+    let _ = writeln!(
+        out,
+        "transitions sent {}  durable {}",
+        a.sent_transitions, a.durable_transitions
     );
     let _ = writeln!(
         out,

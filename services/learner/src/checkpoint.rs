@@ -17,7 +17,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use hac_learner::{Learner, LearnerCheckpoint};
+use hac_learner::{FinishedRun, Learner, LearnerCheckpoint, WalOptions};
 use hac_run::checkpoints::{CheckpointStore, Written};
 use tokio::signal::unix::{Signal, SignalKind, signal};
 use tokio::task::JoinHandle;
@@ -39,11 +39,28 @@ pub struct CheckpointArgs {
     /// with empty replay, which actors fill again.
     #[arg(long)]
     pub checkpoint_replay: bool,
-    /// Continue the run in --out from its newest valid checkpoint (corrupt ones are skipped);
-    /// a directory without a run starts a new one.
+    /// Continue the run in --out from its newest valid checkpoint (corrupt ones are skipped)
+    /// and the write-ahead log after it; a directory without a run starts a new one.
     #[arg(long, conflicts_with = "overwrite")]
     pub resume: bool,
+    /// Seconds between commits of the write-ahead log (<out>/wal: every stored message, fsynced
+    /// in groups), which makes acknowledged messages durable between checkpoints: actors keep
+    /// what is not durable yet and resend it to a resumed learner. 0 turns the log off (a message
+    /// is then durable once stored, which lasts only as long as the process).
+    #[arg(long, value_name = "SECS", default_value = "0.1", value_parser = seconds)]
+    pub durable_interval: Duration,
 }
+
+impl CheckpointArgs {
+    /// The write-ahead log of a run in `out`, unless `--durable-interval 0`.
+    pub fn wal(&self, out: &Path) -> Option<WalOptions> {
+        (!self.durable_interval.is_zero())
+            .then(|| WalOptions::new(out.join(WAL_DIR), self.durable_interval))
+    }
+}
+
+/// The write-ahead log's directory in the run directory.
+pub const WAL_DIR: &str = "wal";
 
 /// How the daemon starts its run.
 #[derive(Debug)]
@@ -154,7 +171,10 @@ impl Checkpoints {
         self.running = Some(tokio::task::spawn_blocking(move || {
             let started = Instant::now();
             let checkpoint = learner.checkpoint(with_replay)?;
-            write(&store, &checkpoint, keep, Some(started.elapsed()))
+            let name = write(&store, &checkpoint, keep, Some(started.elapsed()))?;
+            // The checkpoint is on disk: the log before its cut is not needed any more.
+            truncated(learner.truncate_wal(&checkpoint));
+            Ok(name)
         }));
     }
 
@@ -165,13 +185,13 @@ impl Checkpoints {
         }
     }
 
-    /// Writes the final checkpoint of a learner that has shut down.
-    pub(crate) fn write_final(&self, checkpoint: &LearnerCheckpoint) -> Result<String> {
-        write(&self.store, checkpoint, self.keep, None)
-    }
-
-    pub(crate) fn with_replay(&self) -> bool {
-        self.with_replay
+    /// Writes the final checkpoint of a learner that has shut down, then drops the log before
+    /// its cut.
+    pub(crate) fn write_final(&self, finished: &FinishedRun) -> Result<String> {
+        let checkpoint = finished.checkpoint(self.with_replay);
+        let name = write(&self.store, &checkpoint, self.keep, None)?;
+        truncated(finished.truncate_wal(&checkpoint));
+        Ok(name)
     }
 }
 
@@ -199,6 +219,16 @@ fn write(
         "checkpoint written"
     );
     Ok(name)
+}
+
+/// Logs what truncating the write-ahead log after a checkpoint did (a failure leaves segments
+/// that the next checkpoint deletes; nothing is lost).
+fn truncated(result: Result<u64, hac_learner::WalError>) {
+    match result {
+        Ok(0) => {}
+        Ok(bytes) => tracing::debug!(bytes, "write-ahead log truncated at the checkpoint"),
+        Err(e) => tracing::warn!(error = %e, "truncating the write-ahead log failed"),
+    }
 }
 
 fn log(result: Result<Result<String>, tokio::task::JoinError>) {

@@ -265,14 +265,25 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let options = args.learner_options(&run)?;
+    let mut options = args.learner_options(&run)?;
     let server_options = args.server_options()?;
     let out = args.out.clone().unwrap_or_else(|| {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
+    options.wal = args.checkpoint.wal(&out);
     let (learner, mut dir) = match checkpoint::start(&args.checkpoint, &out)? {
         Start::New { replace } => {
             let dir = RunDir::create(&out, &run, args.overwrite || replace)?;
+            if !args.checkpoint.resume {
+                // A new run: a log an earlier run left in the directory is not this run's.
+                // (Resuming a run killed before its first checkpoint replays its log instead.)
+                let wal = out.join(checkpoint::WAL_DIR);
+                if wal.exists() {
+                    std::fs::remove_dir_all(&wal).with_context(|| {
+                        format!("removing the old write-ahead log {}", wal.display())
+                    })?;
+                }
+            }
             (Learner::start(run, options)?, dir)
         }
         Start::Resume { checkpoint, name } => {
@@ -326,7 +337,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let finished = learner.shutdown();
     run_dir::record_new(&mut dir, &finished.curve, finished.best.as_deref())?;
     let summary = run_dir::finish(&dir, &finished, elapsed.as_secs_f64())?;
-    checkpoints.write_final(&finished.checkpoint(checkpoints.with_replay()))?;
+    checkpoints.write_final(&finished)?;
     tracing::info!(
         episodes = finished.status.episodes,
         transitions = finished.status.transitions,

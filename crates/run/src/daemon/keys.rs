@@ -27,6 +27,7 @@ pub const LEARNER: &[&str] = &[
     "keep_checkpoints",
     "checkpoint_replay",
     "resume",
+    "durable_interval",
     "shm",
     "shm_max_actors",
     "shm_window",

@@ -12,9 +12,14 @@
 //!   once). After `give_up_after` without an answer, the link fails with
 //!   [`LinkError::Unavailable`].
 //! - `unknown_actor` or `stale_incarnation` on any call or stream, the weights watch included (the
-//!   learner restarted and lost its registry, or the id registered again elsewhere): register again with the same [`Registration`], check that the
-//!   run's config digest is unchanged (else [`LinkError::Refused`]: the run changed), renumber the
-//!   unacknowledged messages from sequence 1 under the new incarnation and resend them.
+//!   learner restarted and lost its registry, or the id registered again elsewhere): register
+//!   again with the same [`Registration`], naming the incarnation the messages are numbered under
+//!   (the learner answers with a number above it), check that the run's config digest is
+//!   unchanged (else [`LinkError::Refused`]: the run changed), renumber the unacknowledged
+//!   messages from sequence 1 under the new incarnation and resend them. Whichever task finds the
+//!   refusal registers (one at a time); the renumbering starts a new *generation* of the outbox,
+//!   and an ingest stream, an ack or a call of an older generation is dropped when it next looks,
+//!   so no message of the old numbering is sent after the new registration.
 //! - `finished`: [`LinkError::Finished`]. Any other refusal (including `unauthenticated`: a
 //!   missing or wrong token): [`LinkError::Refused`].
 //!
@@ -29,7 +34,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use hac_core::Rng;
 use hac_learner::{Published, RejectReason};
-use hac_proto::{Admission, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb};
+use hac_proto::{
+    Admission, IngestItem, IngestMessage, PreviousIncarnation, Registration, WeightsSnapshot, pb,
+};
 use parking_lot::{Condvar, Mutex};
 use prost::Message as _;
 use tokio::runtime::Runtime;
@@ -54,6 +61,11 @@ pub struct GrpcLinkOptions {
     /// Most messages sent and not yet acknowledged; [`ActorLink::send`] blocks while the window
     /// is full, which is how the learner's backpressure reaches the actor.
     pub window: usize,
+    /// Most messages kept until the learner says they are durable (acknowledged ones included);
+    /// [`ActorLink::send`] blocks while this many are held, so that a learner whose log falls
+    /// behind holds its actors back too. Bounds the ack-durable gap, with the learner's commit
+    /// interval.
+    pub max_held: usize,
     /// First delay before reconnecting; each failure in a row doubles it, up to `backoff_max`.
     /// Each delay is drawn uniformly from its upper half (jitter), so actors that lost the same
     /// learner do not come back in lockstep.
@@ -85,6 +97,7 @@ impl Default for GrpcLinkOptions {
             .map_or(0, |d| d.subsec_nanos());
         Self {
             window: 256,
+            max_held: 4096,
             backoff_min: Duration::from_millis(50),
             backoff_max: Duration::from_secs(5),
             connect_timeout: Duration::from_secs(5),
@@ -105,6 +118,8 @@ pub enum ConnectError {
     Endpoint(#[from] EndpointError),
     #[error("the window must be at least 1")]
     ZeroWindow,
+    #[error("max_held must be at least the window")]
+    HeldBelowWindow,
     #[error("starting the link's runtime: {0}")]
     Runtime(#[source] std::io::Error),
 }
@@ -157,8 +172,15 @@ struct Outbox {
     digest: String,
     /// 0 until registered.
     incarnation: u64,
-    /// Sequences `acked_through + 1 ..= acked_through + unacked.len()`, in order.
-    unacked: VecDeque<Arc<pb::IngestRequest>>,
+    /// Bumped by every registration: a stream or call started under another generation is of an
+    /// older numbering, whatever its incarnation number (a restarted learner can hand out the
+    /// same number again).
+    generation: u64,
+    /// Sequences `durable_through + 1 ..= durable_through + held.len()`, in order: every message
+    /// the learner has not said is durable, acknowledged ones included.
+    held: VecDeque<Arc<pb::IngestRequest>>,
+    /// What the learner said is durable, and stored (at least `durable_through`).
+    durable_through: u64,
     acked_through: u64,
     failure: Option<LinkError>,
     /// Re-registrations since the learner last acknowledged something.
@@ -168,14 +190,46 @@ struct Outbox {
 impl Outbox {
     /// The message after `sent_through`, if it is in the outbox.
     fn after(&self, sent_through: u64) -> Option<Arc<pb::IngestRequest>> {
-        let from = sent_through.max(self.acked_through) - self.acked_through;
+        let from = sent_through.max(self.durable_through) - self.durable_through;
         usize::try_from(from)
             .ok()
-            .and_then(|i| self.unacked.get(i).cloned())
+            .and_then(|i| self.held.get(i).cloned())
+    }
+
+    /// Puts the outbox's counts into `stats`.
+    fn report(&self, stats: &LinkStats) {
+        stats.set_unacked(self.unacked());
+        stats.set_undurable(self.held.len() - self.unacked());
+    }
+
+    /// Messages sent and not yet acknowledged.
+    fn unacked(&self) -> usize {
+        (self.next_sequence() - 1 - self.acked_through) as usize
+    }
+
+    /// Whether the outbox holds a message after `sent_through`.
+    fn has_after(&self, sent_through: u64) -> bool {
+        sent_through.max(self.durable_through) < self.next_sequence() - 1
     }
 
     fn next_sequence(&self) -> u64 {
-        self.acked_through + self.unacked.len() as u64 + 1
+        self.durable_through + self.held.len() as u64 + 1
+    }
+
+    /// Applies an ack's watermarks (never past what was sent, never back); returns the
+    /// transitions of the messages that became durable.
+    fn acknowledge(&mut self, acked_through: u64, durable_through: u64) -> u64 {
+        let sent = self.next_sequence() - 1;
+        self.acked_through = self.acked_through.max(acked_through.min(sent));
+        let durable = durable_through.min(self.acked_through);
+        let mut transitions = 0;
+        while self.durable_through < durable {
+            if let Some(msg) = self.held.pop_front() {
+                transitions += transitions_of(&msg);
+            }
+            self.durable_through += 1;
+        }
+        transitions
     }
 
     fn actor_id(&self) -> &str {
@@ -193,6 +247,9 @@ impl GrpcLink {
     pub fn connect(url: &str, options: GrpcLinkOptions) -> Result<Self, ConnectError> {
         if options.window == 0 {
             return Err(ConnectError::ZeroWindow);
+        }
+        if options.max_held < options.window {
+            return Err(ConnectError::HeldBelowWindow);
         }
         let endpoint = endpoint(url, options.tls.as_ref())?
             .connect_timeout(options.connect_timeout)
@@ -242,7 +299,12 @@ impl GrpcLink {
 
     /// Messages sent and not yet acknowledged.
     pub fn unacked(&self) -> usize {
-        self.shared.outbox.lock().unacked.len()
+        self.shared.outbox.lock().unacked()
+    }
+
+    /// Messages kept until the learner says they are durable (acknowledged ones included).
+    pub fn held(&self) -> usize {
+        self.shared.outbox.lock().held.len()
     }
 
     /// The incarnation messages are numbered under now (0 before registration).
@@ -268,9 +330,10 @@ impl ActorLink for GrpcLink {
     fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
         let shared = self.shared.clone();
         let channel = self.channel.clone();
-        let admission =
-            self.runtime()
-                .block_on(register_until_admitted(&shared, &channel, registration))?;
+        let request = pb::RegisterRequest::from(registration.clone());
+        let admission = self
+            .runtime()
+            .block_on(register_until_admitted(&shared, &channel, request))?;
         {
             let mut outbox = shared.outbox.lock();
             outbox.registration = Some(registration.clone());
@@ -306,7 +369,9 @@ impl ActorLink for GrpcLink {
             if outbox.incarnation == 0 {
                 return Err(LinkError::Refused("send before register".into()));
             }
-            if outbox.unacked.len() < shared.options.window {
+            if outbox.unacked() < shared.options.window
+                && outbox.held.len() < shared.options.max_held
+            {
                 break;
             }
             shared
@@ -316,8 +381,13 @@ impl ActorLink for GrpcLink {
         msg.actor_id = outbox.actor_id().to_string();
         msg.incarnation = outbox.incarnation;
         msg.sequence = outbox.next_sequence();
-        outbox.unacked.push_back(Arc::new(msg));
-        shared.stats.set_unacked(outbox.unacked.len());
+        let transitions = transitions_of(&msg);
+        outbox.held.push_back(Arc::new(msg));
+        outbox.report(&shared.stats);
+        shared
+            .stats
+            .sent_transitions
+            .fetch_add(transitions, Ordering::Relaxed);
         drop(outbox);
         shared.queued.notify_one();
         Ok(())
@@ -330,7 +400,7 @@ impl ActorLink for GrpcLink {
             if let Some(e) = &outbox.failure {
                 return Err(e.clone());
             }
-            if outbox.unacked.is_empty() {
+            if outbox.unacked() == 0 {
                 return Ok(());
             }
             if self
@@ -338,9 +408,31 @@ impl ActorLink for GrpcLink {
                 .changed
                 .wait_until(&mut outbox, deadline)
                 .timed_out()
-                && !outbox.unacked.is_empty()
+                && outbox.unacked() != 0
             {
-                return Err(LinkError::TimedOut(outbox.unacked.len()));
+                return Err(LinkError::TimedOut(outbox.unacked()));
+            }
+        }
+    }
+
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        let deadline = Instant::now() + timeout;
+        let mut outbox = self.shared.outbox.lock();
+        loop {
+            if let Some(e) = &outbox.failure {
+                return Err(e.clone());
+            }
+            if outbox.held.is_empty() {
+                return Ok(());
+            }
+            if self
+                .shared
+                .changed
+                .wait_until(&mut outbox, deadline)
+                .timed_out()
+                && !outbox.held.is_empty()
+            {
+                return Err(LinkError::TimedOut(outbox.held.len()));
             }
         }
     }
@@ -369,9 +461,10 @@ impl ActorLink for GrpcLink {
             let mut client = learner_client(&shared, &channel);
             let mut retry = Retry::new(&shared, "turn request");
             loop {
-                let (actor_id, incarnation) = {
+                let (actor_id, incarnation, generation) = {
                     let outbox = shared.outbox.lock();
-                    (outbox.actor_id().to_string(), outbox.incarnation)
+                    let id = outbox.actor_id().to_string();
+                    (id, outbox.incarnation, outbox.generation)
                 };
                 let mut request = tonic::Request::new(pb::TurnRequest {
                     actor_id,
@@ -391,7 +484,7 @@ impl ActorLink for GrpcLink {
                 match Failure::of(&status) {
                     Failure::Retry => retry.wait(&status).await?,
                     Failure::Reregister => {
-                        reregister(&shared, &channel, incarnation).await?;
+                        reregister(&shared, &channel, generation).await?;
                         return Ok(None);
                     }
                     Failure::Finished => return Err(LinkError::Finished),
@@ -409,9 +502,10 @@ impl ActorLink for GrpcLink {
             let mut client = learner_client(&shared, &channel);
             let mut retry = Retry::new(&shared, "evaluation report");
             loop {
-                let (actor_id, incarnation) = {
+                let (actor_id, incarnation, generation) = {
                     let outbox = shared.outbox.lock();
-                    (outbox.actor_id().to_string(), outbox.incarnation)
+                    let id = outbox.actor_id().to_string();
+                    (id, outbox.incarnation, outbox.generation)
                 };
                 let message = pb::EvaluationReport {
                     actor_id,
@@ -441,7 +535,7 @@ impl ActorLink for GrpcLink {
                     // The learner forgot this actor (it restarted): register again and
                     // report again. Weights of the learner before the restart are refused as
                     // stale (above); the restarted learner's own are recorded.
-                    Failure::Reregister => reregister(&shared, &channel, incarnation).await?,
+                    Failure::Reregister => reregister(&shared, &channel, generation).await?,
                     Failure::Finished => return Err(LinkError::Finished),
                     Failure::Refused => return Err(LinkError::Refused(status.message().into())),
                 }
@@ -466,7 +560,14 @@ impl Failure {
     fn of(status: &Status) -> Self {
         match reject_reason(status) {
             Some(RejectReason::Finished) => Self::Finished,
-            Some(RejectReason::UnknownActor | RejectReason::StaleIncarnation) => Self::Reregister,
+            // A gap: a restarted learner lacks messages this link no longer holds (it said they
+            // were durable). Registering again gets a fresh incarnation, and everything held is
+            // resent under it.
+            Some(
+                RejectReason::UnknownActor
+                | RejectReason::StaleIncarnation
+                | RejectReason::SequenceGap,
+            ) => Self::Reregister,
             Some(_) => Self::Refused,
             // No reason: tonic, hyper or the network speaking, not the learner.
             None => match status.code() {
@@ -585,15 +686,12 @@ fn learner_client(
 async fn register_until_admitted(
     shared: &Shared,
     channel: &LinkChannel,
-    registration: &Registration,
+    request: pb::RegisterRequest,
 ) -> Result<Admission, LinkError> {
     let mut client = learner_client(shared, channel);
     let mut retry = Retry::new(shared, "register");
     loop {
-        let status = match client
-            .register(pb::RegisterRequest::from(registration.clone()))
-            .await
-        {
+        let status = match client.register(request.clone()).await {
             Ok(response) => {
                 return Admission::try_from(response.into_inner()).map_err(|e| {
                     LinkError::Refused(format!("the learner's admission is invalid: {e}"))
@@ -611,12 +709,15 @@ async fn register_until_admitted(
     }
 }
 
-/// Numbers the outbox's messages from sequence 1 under `incarnation`.
+/// Numbers the outbox's messages from sequence 1 under `incarnation`, a new generation: streams
+/// and calls of the old one end when they next look.
 fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     outbox.incarnation = incarnation;
+    outbox.generation += 1;
     stats.incarnation.store(incarnation, Ordering::Relaxed);
     outbox.acked_through = 0;
-    for (sequence, msg) in (1..).zip(outbox.unacked.iter_mut()) {
+    outbox.durable_through = 0;
+    for (sequence, msg) in (1..).zip(outbox.held.iter_mut()) {
         // Copies only a message still queued in a stream being torn down.
         let msg = Arc::make_mut(msg);
         msg.incarnation = incarnation;
@@ -624,17 +725,16 @@ fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     }
 }
 
-/// Registers again after the learner refused `failed_incarnation` as unknown or stale, unless that
-/// was already done; renumbers the outbox under the new incarnation.
-async fn reregister(
-    shared: &Shared,
-    channel: &LinkChannel,
-    failed_incarnation: u64,
-) -> Result<(), LinkError> {
+/// Registers again after the learner refused a call or stream of generation `failed` as unknown
+/// or stale, unless another task already did; renumbers the outbox under the new incarnation (a
+/// new generation). The registration names the current incarnation, so the learner answers with
+/// a number above it: messages of the old numbering still in flight on a stream being torn down
+/// are refused as stale, never taken for the new incarnation's.
+async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Result<(), LinkError> {
     let _one_at_a_time = shared.registering.lock().await;
-    let (registration, digest) = {
+    let (request, digest) = {
         let mut outbox = shared.outbox.lock();
-        if outbox.incarnation != failed_incarnation {
+        if outbox.generation != failed {
             return Ok(());
         }
         outbox.reregistrations += 1;
@@ -649,9 +749,15 @@ async fn reregister(
             .registration
             .clone()
             .ok_or_else(|| LinkError::Refused("send before register".into()))?;
-        (registration, outbox.digest.clone())
+        let mut request = pb::RegisterRequest::from(registration);
+        PreviousIncarnation {
+            incarnation: outbox.incarnation,
+            resend_from: outbox.durable_through + 1,
+        }
+        .into_request(&mut request);
+        (request, outbox.digest.clone())
     };
-    let admission = register_until_admitted(shared, channel, &registration).await?;
+    let admission = register_until_admitted(shared, channel, request.clone()).await?;
     if admission.run_config_digest != digest {
         return Err(LinkError::Refused(format!(
             "the learner runs a different config now (digest {}, registered under {digest}): \
@@ -659,18 +765,28 @@ async fn reregister(
             admission.run_config_digest
         )));
     }
-    let resent = {
+    let (resent, kept) = {
         let mut outbox = shared.outbox.lock();
-        renumber(&mut outbox, &shared.stats, admission.incarnation);
-        outbox.unacked.len()
+        let kept = admission.incarnation == outbox.incarnation;
+        if kept {
+            // A resumed learner that recovered this incarnation: the same numbering, resent from
+            // the oldest message not durable (it acknowledges what it has as duplicates).
+            outbox.generation += 1;
+            outbox.acked_through = outbox.durable_through;
+        } else {
+            renumber(&mut outbox, &shared.stats, admission.incarnation);
+        }
+        outbox.report(&shared.stats);
+        (outbox.held.len(), kept)
     };
     // An ingest stream open under the old incarnation (another task registered again) starts
     // over once woken.
     shared.queued.notify_one();
     shared.stats.learner_version.store(0, Ordering::Relaxed);
     tracing::info!(
-        actor = %registration.actor_id,
+        actor = %request.actor_id,
         incarnation = admission.incarnation,
+        kept,
         resent,
         "registered again with the learner"
     );
@@ -692,20 +808,18 @@ impl Shared {
         self.changed.notify_all();
     }
 
-    /// Applies an ack of a stream opened under `incarnation`; false (and nothing applied) if the
-    /// outbox was renumbered since: the ack counts messages of the old numbering.
-    fn on_ack(&self, incarnation: u64, ack: &pb::IngestAck) -> bool {
+    /// Applies an ack of a stream of `generation`; false (and nothing applied) if the outbox was
+    /// renumbered since: the ack counts messages of the old numbering.
+    fn on_ack(&self, generation: u64, ack: &pb::IngestAck) -> bool {
         let mut outbox = self.outbox.lock();
-        if outbox.incarnation != incarnation {
+        if outbox.generation != generation {
             return false;
         }
-        // Never past what was sent, whatever the learner says.
-        let through = ack.acked_through.min(outbox.next_sequence() - 1);
-        while outbox.acked_through < through {
-            outbox.unacked.pop_front();
-            outbox.acked_through += 1;
-        }
-        self.stats.set_unacked(outbox.unacked.len());
+        let transitions = outbox.acknowledge(ack.acked_through, ack.durable_through);
+        outbox.report(&self.stats);
+        self.stats
+            .durable_transitions
+            .fetch_add(transitions, Ordering::Relaxed);
         outbox.reregistrations = 0;
         drop(outbox);
         self.stats
@@ -716,10 +830,19 @@ impl Shared {
     }
 }
 
+/// The transitions an ingest message carries (0 for an episode summary).
+fn transitions_of(msg: &pb::IngestRequest) -> u64 {
+    match &msg.item {
+        Some(pb::ingest_request::Item::Batch(batch)) => u64::from(batch.count),
+        _ => 0,
+    }
+}
+
 /// Why one ingest stream ended.
 enum StreamEnd {
     Closed,
-    Failed(Status),
+    /// The stream, of this generation, failed.
+    Failed(Status, u64),
     /// Another task registered again and renumbered the outbox: what the stream sent is
     /// numbered under the old incarnation, so a new stream starts from the oldest message.
     Renumbered,
@@ -733,7 +856,7 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
     loop {
         // Open a stream only when there is something to send.
         loop {
-            if shared.outbox.lock().unacked.is_empty() {
+            if shared.outbox.lock().held.is_empty() {
                 tokio::select! {
                     () = shared.queued.notified() => {}
                     () = until_set(&mut closed) => return,
@@ -742,15 +865,14 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
                 break;
             }
         }
-        let incarnation = shared.outbox.lock().incarnation;
-        let status = match ingest_stream(&shared, &channel, &mut retry).await {
+        let (status, generation) = match ingest_stream(&shared, &channel, &mut retry).await {
             StreamEnd::Closed => return,
             StreamEnd::Renumbered => continue,
-            StreamEnd::Failed(status) => status,
+            StreamEnd::Failed(status, generation) => (status, generation),
         };
         let outcome = match Failure::of(&status) {
             Failure::Retry => retry.wait(&status).await,
-            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
+            Failure::Reregister => reregister(&shared, &channel, generation).await,
             Failure::Finished => Err(LinkError::Finished),
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };
@@ -763,9 +885,14 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
 }
 
 /// One ingest stream: sends every unacknowledged message from the oldest on, then each new one;
-/// applies acks as they come; returns when the stream fails or the link closes.
+/// applies acks as they come; returns when the stream fails, the outbox is renumbered (another
+/// task registered again) or the link closes. The stream belongs to the generation current when
+/// it opened: it sends only messages numbered under it, and checks that under the outbox's lock
+/// each time it takes one, so a registration, its renumbering and the start of the next stream
+/// are one step as far as the learner can tell.
 async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry<'_>) -> StreamEnd {
     let mut closed = shared.closed.subscribe();
+    let opened_under = shared.outbox.lock().generation;
     let max = shared.options.max_message_bytes;
     let mut grpc = tonic::client::Grpc::new(channel.clone())
         .max_decoding_message_size(max)
@@ -788,20 +915,26 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
     };
     let mut acks = match response {
         Ok(response) => response.into_inner(),
-        Err(status) => return StreamEnd::Failed(status),
+        Err(status) => return StreamEnd::Failed(status, opened_under),
     };
     retry.answered();
-    let (mut sent_through, incarnation) = {
+    let (mut sent_through, generation) = {
         let outbox = shared.outbox.lock();
-        (outbox.acked_through, outbox.incarnation)
+        if outbox.generation != opened_under {
+            // Registered again while the stream opened: start over under the new numbering.
+            return StreamEnd::Renumbered;
+        }
+        // From the oldest message not durable: a restarted learner may have lost what it
+        // acknowledged after its log's last commit (one that did not acknowledges duplicates).
+        (outbox.durable_through, outbox.generation)
     };
     loop {
         let next = {
             let outbox = shared.outbox.lock();
-            if outbox.incarnation != incarnation {
+            if outbox.generation != generation {
                 return StreamEnd::Renumbered;
             }
-            outbox.after(sent_through)
+            outbox.has_after(sent_through)
         };
         tokio::select! {
             biased;
@@ -809,23 +942,30 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
             ack = acks.message() => match ack {
                 Ok(Some(ack)) => {
                     retry.succeeded();
-                    if !shared.on_ack(incarnation, &ack) {
+                    if !shared.on_ack(generation, &ack) {
                         return StreamEnd::Renumbered;
                     }
                 }
                 Ok(None) => {
-                    return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"));
+                    return StreamEnd::Failed(Status::unavailable("the learner ended the ingest stream"), generation);
                 }
-                Err(status) => return StreamEnd::Failed(status),
+                Err(status) => return StreamEnd::Failed(status, generation),
             },
-            permit = tx.reserve(), if next.is_some() => {
-                let (Ok(permit), Some(msg)) = (permit, next) else {
-                    return StreamEnd::Failed(Status::unavailable("the ingest stream closed"));
+            permit = tx.reserve(), if next => {
+                let Ok(permit) = permit else {
+                    return StreamEnd::Failed(Status::unavailable("the ingest stream closed"), generation);
                 };
-                sent_through = msg.sequence;
-                permit.send(msg);
+                // Taken and sent under the lock: never a message of another numbering.
+                let outbox = shared.outbox.lock();
+                if outbox.generation != generation {
+                    return StreamEnd::Renumbered;
+                }
+                if let Some(msg) = outbox.after(sent_through) {
+                    sent_through = msg.sequence;
+                    permit.send(msg);
+                }
             }
-            () = shared.queued.notified(), if next.is_none() => {}
+            () = shared.queued.notified(), if !next => {}
         }
     }
 }
@@ -838,15 +978,15 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
     let mut retry = Retry::new(&shared, "weights");
     let mut client = learner_client(&shared, &channel);
     loop {
-        let request = {
+        let (request, generation) = {
             let outbox = shared.outbox.lock();
-            pb::WatchWeightsRequest {
+            let request = pb::WatchWeightsRequest {
                 actor_id: outbox.actor_id().to_string(),
                 incarnation: outbox.incarnation,
                 min_version: 0,
-            }
+            };
+            (request, outbox.generation)
         };
-        let incarnation = request.incarnation;
         let watched = async {
             let mut stream = client.watch_weights(request).await?.into_inner();
             retry.answered();
@@ -892,7 +1032,7 @@ async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
             // Weights go to registered actors only: a learner that restarted (or an id that
             // registered elsewhere) is answered by registering again, as the ingest task does;
             // an actor with nothing to send would otherwise wait for weights for ever.
-            Failure::Reregister => reregister(&shared, &channel, incarnation).await,
+            Failure::Reregister => reregister(&shared, &channel, generation).await,
             Failure::Finished => return,
             Failure::Refused => Err(LinkError::Refused(status.message().into())),
         };

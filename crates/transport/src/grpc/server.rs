@@ -19,10 +19,10 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use hac_learner::{IngestError, Learner, RegisterError, RejectReason, RoomError};
+use hac_learner::{IngestError, Learner, Published, RegisterError, RejectReason, RoomError};
 use hac_proto::{
-    Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, Registration, ShmOffer, WeightsWatch,
-    WireError, check_actor_id, decode_ingest, pb,
+    Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, PreviousIncarnation, Registration,
+    ShmOffer, WeightsWatch, WireError, check_actor_id, decode_ingest, pb,
 };
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -358,10 +358,37 @@ impl LearnerGrpc {
         // The actor of the stream's first message (one copy per stream), to name in the
         // refusal of bytes that do not decode later on.
         let mut stream_actor: Option<String> = None;
+        // The incarnation of the stream's latest message, and the durable watermark sent.
+        let mut incarnation = 0;
+        let mut durable_through = 0;
+        // Commits of the learner's write-ahead log: durability advances without new messages.
+        let mut commits = self.learner.durable_commits().map(Published::subscribe);
         let end = loop {
             tokio::select! {
                 biased;
                 () = until_set(&mut closing) => break Some(shutting_down(&self.learner)),
+                changed = async { commits.as_mut().expect("only with a log").changed().await },
+                    if commits.is_some() && acked_through > durable_through =>
+                {
+                    if changed.is_err() {
+                        commits = None;
+                        continue;
+                    }
+                    let actor = stream_actor.as_deref().unwrap_or_default();
+                    let durable = self
+                        .learner
+                        .durable_through(actor, incarnation)
+                        .min(acked_through);
+                    if durable > durable_through {
+                        durable_through = durable;
+                        let ack = pending.get_or_insert_with(|| pb::IngestAck {
+                            acked_through,
+                            weights_version: self.learner.weights().latest().map_or(0, |w| w.version),
+                            durable_through,
+                        });
+                        ack.durable_through = durable_through;
+                    }
+                }
                 permit = acks.reserve(), if pending.is_some() => {
                     // An error: the actor hung up.
                     let Ok(permit) = permit else { return };
@@ -377,12 +404,15 @@ impl LearnerGrpc {
                         let id = &msg.actor_id;
                         stream_actor = Some(if id.len() <= MAX_ACTOR_ID_BYTES { id.clone() } else { String::new() });
                     }
+                    incarnation = msg.incarnation;
                     match self.accept(msg).await {
                         Ok(ack) => {
                             // Cumulative: a later ack covers the queued one.
                             acked_through = acked_through.max(ack.acked_through);
+                            durable_through = durable_through.max(ack.durable_through.min(acked_through));
                             pending = Some(pb::IngestAck {
                                 acked_through,
+                                durable_through,
                                 ..ack
                             });
                         }
@@ -436,6 +466,12 @@ impl LearnerGrpc {
             Ok(_) => Ok(pb::IngestAck {
                 acked_through: msg.sequence,
                 weights_version: learner.weights().latest().map_or(0, |w| w.version),
+                // With a log, durability is read when it commits (and here, for a resend of
+                // what a resumed learner recovered); without one, stored is durable.
+                durable_through: match learner.durable_commits() {
+                    Some(_) => learner.durable_through(&msg.actor_id, msg.incarnation),
+                    None => msg.sequence,
+                },
             }),
             // The learner counted it.
             Err(e) => Err(self.refused("ingest message", &msg.actor_id, e)),
@@ -504,6 +540,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
             "register_request.actor_id",
             &request.actor_id,
         )?;
+        let previous = PreviousIncarnation::of_request(&request);
         let registration = Registration::try_from(request)
             .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         let wants_shm = registration
@@ -512,7 +549,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
             .any(|t| t == crate::shm::TRANSPORT);
         let mut admission = self
             .learner
-            .register(registration)
+            .register_again(registration, previous)
             .map_err(|e| self.refuse("registration", &actor, e.into()))?;
         if wants_shm {
             admission.shm = self.shm_offer.as_deref().cloned();

@@ -131,6 +131,15 @@ pub fn learner_status(
         turns_waiting: status.turns.waiting,
         turns_granted: status.turns.granted,
         turns_expired: status.turns.expired,
+        wal: status.wal.map(|w| pb::WalStatus {
+            bytes: w.bytes,
+            segments: w.segments,
+            appended: w.appended,
+            committed: w.committed,
+            commits: w.commits,
+            last_commit_seconds: w.last_commit.as_secs_f64(),
+            failed: w.failed,
+        }),
         actors: status
             .actors
             .iter()
@@ -149,6 +158,8 @@ pub fn learner_status(
                 duplicates: a.duplicates,
                 weights_version: a.weights_version,
                 weights_lag: a.weights_lag,
+                stored_through: a.stored_through,
+                durable_through: a.durable_through,
             })
             .collect(),
         evaluations: curve
@@ -187,6 +198,9 @@ pub struct ActorNodeStatus {
     pub learner_weights_version: u64,
     pub unacked: u64,
     pub reconnects: u64,
+    pub undurable: u64,
+    pub sent_transitions: u64,
+    pub durable_transitions: u64,
 }
 
 impl From<&ActorNodeStatus> for pb::ActorStatus {
@@ -211,6 +225,9 @@ impl From<&ActorNodeStatus> for pb::ActorStatus {
             weights_lag: s.learner_weights_version.saturating_sub(s.weights_version),
             unacked: s.unacked,
             reconnects: s.reconnects,
+            undurable: s.undurable,
+            sent_transitions: s.sent_transitions,
+            durable_transitions: s.durable_transitions,
         }
     }
 }

@@ -490,9 +490,13 @@ impl ShmLink {
             }
             match ack.refusal {
                 None => self.reregistrations = 0,
-                Some(RejectReason::UnknownActor | RejectReason::StaleIncarnation) => {
-                    self.reregister()?
-                }
+                // A gap: a resumed learner lacks acknowledged messages this link dropped
+                // (shared memory reports no durable watermark): a fresh incarnation.
+                Some(
+                    RejectReason::UnknownActor
+                    | RejectReason::StaleIncarnation
+                    | RejectReason::SequenceGap,
+                ) => self.reregister()?,
                 Some(RejectReason::Finished) => return Err(LinkError::Finished),
                 Some(reason) => {
                     return Err(LinkError::Refused(format!(
@@ -689,6 +693,15 @@ impl ActorLink for ShmLink {
             }
             self.wait(Some(deadline))?;
         }
+    }
+
+    /// Over shared memory, what is acknowledged (the shm server does not report durability);
+    /// over the gRPC fallback, durable.
+    fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        if self.attached.is_none() {
+            return self.grpc.flush_durable(timeout);
+        }
+        self.flush(timeout)
     }
 
     fn weights(&self) -> &Published<WeightsSnapshot> {

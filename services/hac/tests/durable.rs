@@ -1,0 +1,234 @@
+//! Durable acknowledgements end to end, with the real `hac` binary: a learner killed with
+//! SIGKILL five times at varied moments while two trainers stream to it, and started again with
+//! `--resume` on the same address each time. Nothing the learner acknowledged as durable is lost
+//! (every actor keeps its incarnation through every restart: a learner missing a durable message
+//! could not keep it), nothing is stored twice (the learner's stored transitions are exactly the
+//! transitions the actors sent), and the actors are back and ingesting within 10 s each time.
+
+use std::path::Path;
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+mod common;
+
+use common::{Processes, all_logs, count, hac, listening_addr, summary};
+
+const KILLS: usize = 5;
+/// Actors back and ingesting after a restart within this.
+const RECOVERY: Duration = Duration::from_secs(10);
+const ACTORS: [&str; 2] = ["trainer-0", "trainer-1"];
+
+fn learner(out: &Path, listen: &str, logs: &Path, name: &str) -> (Child, String) {
+    let mut child = hac(
+        &[
+            "learner",
+            "--env",
+            "mountain-car",
+            "--levels",
+            "2",
+            "--episodes",
+            "100000",
+            "--listen",
+            listen,
+            "--out",
+            out.to_str().unwrap(),
+            "--resume",
+            "--checkpoint-every",
+            "1.5",
+            "--durable-interval",
+            "0.1",
+        ],
+        logs,
+        name,
+    );
+    let addr = listening_addr(&mut child, logs);
+    (child, addr)
+}
+
+/// The learner's status as JSON, `None` while it does not answer.
+fn status(addr: &str) -> Option<serde_json::Value> {
+    let output = Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(["status", "--learner", addr, "--json"])
+        .output()
+        .ok()?;
+    if !output.status.success() {
+        return None;
+    }
+    let value: serde_json::Value = serde_json::from_slice(&output.stdout).ok()?;
+    Some(value["learner"].clone())
+}
+
+/// Each actor's stored-through sequence on the learner (0 for one not registered).
+fn stored(status: &serde_json::Value) -> [u64; 2] {
+    ACTORS.map(|name| {
+        status["actors"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .find(|a| a["actor_id"] == name)
+            .and_then(|a| a["stored_through"].as_u64())
+            .unwrap_or(0)
+    })
+}
+
+/// Waits until both actors have stored more than `above` on the learner at `addr`; how long that
+/// took from `since`.
+fn ingesting(addr: &str, above: [u64; 2], since: Instant, logs: &Path) -> Duration {
+    loop {
+        if let Some(s) = status(addr) {
+            let now = stored(&s);
+            if now[0] > above[0] && now[1] > above[1] {
+                return since.elapsed();
+            }
+        }
+        assert!(
+            since.elapsed() < Duration::from_secs(60),
+            "the actors never came back\n{}",
+            all_logs(logs)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn signal(child: &Child, signal: &str) {
+    let status = Command::new("kill")
+        .args([signal, &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+/// `key=<u64>` from a log line.
+fn field(line: &str, key: &str) -> u64 {
+    line.split(&format!(" {key}="))
+        .nth(1)
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no {key} in {line}"))
+}
+
+#[test]
+fn kill_9_of_the_learner_five_times_loses_nothing_durable_and_stores_nothing_twice() {
+    let dir = common::scratch("hac-durable-test", "kills");
+    let out = dir.join("out");
+    let (child, addr) = learner(&out, "127.0.0.1:0", &dir, "learner-0");
+    // Killed on drop, like the actors, if the test fails half way.
+    let mut serving = Processes(vec![("learner".into(), child)]);
+    let url = format!("http://{addr}");
+    let mut actors = Processes(Vec::new());
+    for name in ACTORS {
+        let args = [
+            "actor",
+            "--learner",
+            &url,
+            "--id",
+            name,
+            "--transport",
+            "grpc",
+            "--flush-timeout",
+            "30",
+        ];
+        actors.0.push((name.into(), hac(&args, &dir, name)));
+    }
+    ingesting(&addr, [0, 0], Instant::now(), &dir);
+
+    // Varied moments, from a fixed seed: 0.5 to 2.5 s of streaming before each kill.
+    let mut seed: u64 = 20;
+    let mut recoveries = Vec::new();
+    for kill in 1..=KILLS {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        let pause = Duration::from_millis(500 + (seed >> 33) % 2000);
+        std::thread::sleep(pause);
+        let first = &mut serving.0[0].1;
+        first.kill().unwrap(); // SIGKILL
+        first.wait().unwrap();
+        let killed = Instant::now();
+        let (again, addr_again) = learner(&out, &addr, &dir, &format!("learner-{kill}"));
+        assert_eq!(addr_again, addr);
+        serving.0[0].1 = again;
+        // What the restarted learner holds once it answers, then the actors ingesting beyond it.
+        let recovered = loop {
+            if let Some(s) = status(&addr) {
+                break stored(&s);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        let back = ingesting(&addr, recovered, killed, &dir);
+        eprintln!(
+            "kill {kill} after {pause:?}: recovered stored-through {recovered:?}, ingesting again after {back:?}"
+        );
+        assert!(
+            back < RECOVERY,
+            "kill {kill}: the actors took {back:?}\n{}",
+            all_logs(&dir)
+        );
+        recoveries.push(back);
+        let log = std::fs::read_to_string(dir.join(format!("learner-{kill}.log"))).unwrap();
+        assert!(
+            log.contains("write-ahead log replayed") || log.contains("resuming the run"),
+            "kill {kill}: {log}"
+        );
+    }
+
+    // The end: the actors stop (SIGTERM: their episode, then everything flushed until durable),
+    // then the learner (SIGTERM: drained, saved).
+    for (_, actor) in &actors.0 {
+        signal(actor, "-TERM");
+    }
+    actors.all_succeed(&dir, Duration::from_secs(60));
+    signal(&serving.0[0].1, "-TERM");
+    serving.all_succeed(&dir, Duration::from_secs(60));
+
+    let (mut sent, mut durable) = (0, 0);
+    for name in ACTORS {
+        let log = std::fs::read_to_string(dir.join(format!("{name}.log"))).unwrap();
+        let line = log
+            .lines()
+            .find(|l| l.contains("actor stopped"))
+            .unwrap_or_else(|| panic!("{name} did not stop cleanly\n{log}"));
+        sent += field(line, "sent_transitions");
+        durable += field(line, "durable_transitions");
+        assert_eq!(field(line, "undurable"), 0, "{line}");
+        // The resumed learners knew the actor's incarnation (from checkpoint and log): it was
+        // never renumbered, which a learner lacking a durable message would have forced.
+        assert!(
+            !log.lines().any(
+                |l| l.contains("registered again with the learner") && l.contains("kept=false")
+            ),
+            "{name} was renumbered: a restarted learner lacked something durable\n{log}"
+        );
+        let first = std::fs::read_to_string(dir.join("learner-0.log")).unwrap();
+        let registered = first
+            .lines()
+            .find(|l| l.contains(&format!("actor registered actor={name} ")))
+            .unwrap_or_else(|| panic!("{name} registered\n{first}"));
+        assert_eq!(
+            field(line, "incarnation"),
+            field(registered, "incarnation"),
+            "{name} kept its first incarnation through every restart\n{log}"
+        );
+        for kill in 1..=KILLS {
+            let restarted =
+                std::fs::read_to_string(dir.join(format!("learner-{kill}.log"))).unwrap();
+            assert!(
+                !restarted.contains(&format!("actor registered actor={name} ")),
+                "learner-{kill} gave {name} a fresh incarnation\n{restarted}"
+            );
+        }
+    }
+    let s = summary(&out);
+    eprintln!(
+        "sent {sent}, durable {durable}, stored {}, duplicates {}, recoveries {recoveries:?}",
+        count(&s, "transitions"),
+        count(&s, "duplicates")
+    );
+    assert_eq!(durable, sent, "everything sent became durable");
+    assert_eq!(
+        count(&s, "transitions"),
+        sent,
+        "every transition sent stored exactly once: {s}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
