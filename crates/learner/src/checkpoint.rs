@@ -602,9 +602,9 @@ impl Learner {
 }
 
 impl FinishedRun {
-    /// Deletes the write-ahead log's segments that `checkpoint`, now safely written, holds.
-    pub fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, crate::WalError> {
-        self.shared.truncate_wal(checkpoint)
+    /// Deletes the write-ahead log's segments before `before_lsn` ([`Learner::truncate_wal`]).
+    pub fn truncate_wal(&self, before_lsn: u64) -> Result<u64, crate::WalError> {
+        self.shared.truncate_wal(before_lsn)
     }
 
     /// The final state of a learner that has shut down, as a checkpoint (with the replay tables

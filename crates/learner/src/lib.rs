@@ -1073,10 +1073,11 @@ impl Learner {
         self.shared.finish("crashed");
     }
 
-    /// Deletes the write-ahead log's segments that `checkpoint`, now safely written, holds
-    /// (everything before its cut); returns the bytes freed.
-    pub fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, WalError> {
-        self.shared.truncate_wal(checkpoint)
+    /// Deletes the write-ahead log's segments before `before_lsn` (a written checkpoint's
+    /// [`LearnerCheckpoint::wal_lsn`]: the oldest checkpoint a resume may fall back to, so that
+    /// each kept checkpoint still has the log after its cut); returns the bytes freed.
+    pub fn truncate_wal(&self, before_lsn: u64) -> Result<u64, WalError> {
+        self.shared.truncate_wal(before_lsn)
     }
 
     /// Backpressure: true if ingest may accept more now. Ingest paths call this (or
@@ -1541,9 +1542,9 @@ impl Shared {
         }
     }
 
-    fn truncate_wal(&self, checkpoint: &LearnerCheckpoint) -> Result<u64, WalError> {
+    fn truncate_wal(&self, before_lsn: u64) -> Result<u64, WalError> {
         match &self.wal {
-            Some(wal) if checkpoint.wal_lsn() > 0 => wal.truncate_before(checkpoint.wal_lsn()),
+            Some(wal) if before_lsn > 0 => wal.truncate_before(before_lsn),
             _ => Ok(0),
         }
     }

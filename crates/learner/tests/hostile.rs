@@ -2,6 +2,10 @@
 //! ordinary to 3e38, NaN and infinity, any actor, incarnation and sequence) mixed with an honest
 //! actor's. Whatever arrives, the learner does not panic, stores exactly what it accepted, and
 //! its published weights stay finite while it trains on what it stored.
+//!
+//! 16 cases of 300 hostile messages by default; `HAC_FUZZ_CASES=N` runs N (3,334 cases are a
+//! million hostile messages: `HAC_FUZZ_CASES=3334 cargo test --release -p hac-learner --test
+//! hostile`).
 
 use std::time::Duration;
 
@@ -108,8 +112,16 @@ fn message(raw: &Raw, dims: &[LevelDims], incarnations: &[u64]) -> IngestMessage
     }
 }
 
+/// Cases to run: `HAC_FUZZ_CASES`, or 16.
+fn cases() -> u32 {
+    std::env::var("HAC_FUZZ_CASES")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(16)
+}
+
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 16, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: cases(), ..ProptestConfig::default() })]
 
     #[test]
     fn hostile_ingest_stores_what_it_accepted_and_weights_stay_finite(

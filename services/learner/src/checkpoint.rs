@@ -12,8 +12,9 @@
 //! must be the checkpoint's (the error names every key that differs). A directory with no run
 //! starts one, so a deployment can always pass `--resume`.
 
+use std::collections::VecDeque;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
@@ -123,12 +124,21 @@ pub(crate) struct Checkpoints {
     timer: Option<Interval>,
     on_demand: Signal,
     running: Option<JoinHandle<Result<String>>>,
+    /// The log cuts of the checkpoints this process wrote, oldest first, at most `keep`: the
+    /// log is kept from the oldest on, so that a resume that falls back from a damaged newest
+    /// checkpoint to an older kept one still finds the log after that one's cut.
+    cuts: Arc<Mutex<VecDeque<u64>>>,
 }
 
 impl Checkpoints {
     /// Installs the SIGUSR1 handler (before the port is bound, so the signal never kills a
     /// serving learner) and the timer.
-    pub(crate) fn install(args: &CheckpointArgs, out: &Path) -> Result<Self> {
+    /// `resumed_cut` is the log cut of the checkpoint a resumed learner started from.
+    pub(crate) fn install(
+        args: &CheckpointArgs,
+        out: &Path,
+        resumed_cut: Option<u64>,
+    ) -> Result<Self> {
         let timer = (!args.checkpoint_every.is_zero()).then(|| {
             let every = args.checkpoint_every;
             let mut timer = tokio::time::interval_at(tokio::time::Instant::now() + every, every);
@@ -143,6 +153,7 @@ impl Checkpoints {
             on_demand: signal(SignalKind::user_defined1())
                 .context("installing the SIGUSR1 handler")?,
             running: None,
+            cuts: Arc::new(Mutex::new(resumed_cut.into_iter().collect())),
         })
     }
 
@@ -168,12 +179,14 @@ impl Checkpoints {
         tracing::debug!(why, "checkpoint due");
         let (learner, store) = (learner.clone(), self.store.clone());
         let (keep, with_replay) = (self.keep, self.with_replay);
+        let cuts = self.cuts.clone();
         self.running = Some(tokio::task::spawn_blocking(move || {
             let started = Instant::now();
             let checkpoint = learner.checkpoint(with_replay)?;
             let name = write(&store, &checkpoint, keep, Some(started.elapsed()))?;
-            // The checkpoint is on disk: the log before its cut is not needed any more.
-            truncated(learner.truncate_wal(&checkpoint));
+            // The checkpoint is on disk: the log before the oldest kept one's cut is not needed
+            // any more.
+            truncated(learner.truncate_wal(oldest_kept(&cuts, &checkpoint, keep)));
             Ok(name)
         }));
     }
@@ -190,9 +203,19 @@ impl Checkpoints {
     pub(crate) fn write_final(&self, finished: &FinishedRun) -> Result<String> {
         let checkpoint = finished.checkpoint(self.with_replay);
         let name = write(&self.store, &checkpoint, self.keep, None)?;
-        truncated(finished.truncate_wal(&checkpoint));
+        truncated(finished.truncate_wal(oldest_kept(&self.cuts, &checkpoint, self.keep)));
         Ok(name)
     }
+}
+
+/// Notes `checkpoint`'s log cut among the last `keep` and returns the oldest of them.
+fn oldest_kept(cuts: &Mutex<VecDeque<u64>>, checkpoint: &LearnerCheckpoint, keep: usize) -> u64 {
+    let mut cuts = cuts.lock().unwrap_or_else(PoisonError::into_inner);
+    cuts.push_back(checkpoint.wal_lsn());
+    while cuts.len() > keep.max(1) {
+        cuts.pop_front();
+    }
+    cuts.front().copied().unwrap_or(0)
 }
 
 /// Writes `checkpoint` to `store`; returns its name. `snapshot` is how long taking it took

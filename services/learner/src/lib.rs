@@ -271,6 +271,9 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
     });
     options.wal = args.checkpoint.wal(&out);
+    // The log cut of the checkpoint resumed from: the log stays from there until newer
+    // checkpoints replace it among those kept.
+    let mut resumed_cut = None;
     let (learner, mut dir) = match checkpoint::start(&args.checkpoint, &out)? {
         Start::New { replace } => {
             let dir = RunDir::create(&out, &run, args.overwrite || replace)?;
@@ -303,6 +306,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
                 replay = checkpoint.has_replay(),
                 "resuming the run"
             );
+            resumed_cut = Some(checkpoint.wal_lsn());
             (learner, RunDir::resume(&out, &run, checkpoint.curve())?)
         }
         Start::Complete { reason } => {
@@ -321,7 +325,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         .context("starting the async runtime")?;
     let learner = Arc::new(learner);
     let mut checkpoints =
-        runtime.block_on(async { Checkpoints::install(&args.checkpoint, &out) })?;
+        runtime.block_on(async { Checkpoints::install(&args.checkpoint, &out, resumed_cut) })?;
     let served = runtime.block_on(serve_run(
         learner.clone(),
         &args,
