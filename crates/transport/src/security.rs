@@ -25,6 +25,7 @@ use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, ServerT
 use tonic::{Request, Status};
 
 use crate::grpc::REJECT_REASON_KEY;
+use crate::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
 
 /// Why a token or TLS setting could not be used.
 #[derive(Debug, thiserror::Error)]
@@ -137,11 +138,21 @@ const HEALTH_PREFIX: &str = "/grpc.health.v1.Health/";
 /// A tower layer for a whole tonic server: with a token, every request whose path is not
 /// health must carry it, else it is answered `UNAUTHENTICATED` without reaching a service, and
 /// `on_refused` is called (the learner counts it as an `unauthenticated` rejection). Without a
-/// token it lets everything through.
-#[derive(Clone, Default)]
+/// token it lets everything through. Refusals are logged like other refused input
+/// (`input refused`, reason `unauthenticated`), rate limited: the first with a missing and the
+/// first with a wrong token in each interval in full, the rest in a summary line per interval
+/// (the learner's `unauthenticated` count has them all).
+#[derive(Clone)]
 pub struct AuthLayer {
     token: Option<Token>,
     on_refused: Option<Arc<dyn Fn() + Send + Sync>>,
+    refusals: Arc<RefusalLog>,
+}
+
+impl Default for AuthLayer {
+    fn default() -> Self {
+        Self::new(None)
+    }
 }
 
 impl fmt::Debug for AuthLayer {
@@ -157,6 +168,7 @@ impl AuthLayer {
         Self {
             token,
             on_refused: None,
+            refusals: Arc::new(RefusalLog::new(SUMMARY_INTERVAL)),
         }
     }
 
@@ -212,14 +224,19 @@ where
                 if let Some(f) = &self.layer.on_refused {
                     f();
                 }
-                tracing::warn!(
-                    path = request.uri().path(),
-                    token = if presented.is_some() {
-                        "wrong"
-                    } else {
-                        "missing"
-                    },
-                    "request refused: unauthenticated"
+                // No actor id can be read before the token is checked: the token's state
+                // stands in for it, so a missing and a wrong token are each logged once per
+                // interval.
+                let token = if presented.is_some() {
+                    "(wrong token)"
+                } else {
+                    "(missing token)"
+                };
+                self.layer.refusals.refused(
+                    "request",
+                    RejectReason::Unauthenticated,
+                    token,
+                    &format_args!("{token} on {}", request.uri().path()),
                 );
                 let mut status = Status::unauthenticated(if presented.is_some() {
                     "wrong bearer token"

@@ -763,13 +763,19 @@ fn a_run_behind_a_token_and_tls_keeps_strangers_out() {
         .lines()
         .map(|line| serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}")))
         .collect();
-    for token in ["missing", "wrong"] {
-        assert!(
-            events.iter().any(|e| e["level"] == "WARN"
-                && e["fields"]["message"] == "request refused: unauthenticated"
-                && e["fields"]["token"] == token),
-            "{log}"
-        );
+    // Each kind of refusal in full once per 10 s interval, not once per request (at least 7 of
+    // each kind came within seconds; the counts above have them all).
+    for token in ["(missing token)", "(wrong token)"] {
+        let lines = events
+            .iter()
+            .filter(|e| {
+                e["level"] == "WARN"
+                    && e["fields"]["message"] == "input refused"
+                    && e["fields"]["reason"] == "unauthenticated"
+                    && e["fields"]["actor"] == token
+            })
+            .count();
+        assert!((1..=3).contains(&lines), "{lines} lines for {token}\n{log}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
