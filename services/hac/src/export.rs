@@ -8,10 +8,12 @@
 //! policy of the run's best test round (`weights/best/`).
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use hac_actor::SnapshotPolicy;
 use hac_agent::{Agent, RunConfig};
+use hac_core::EnvSpec;
 use hac_learner::LearnerCheckpoint;
 use hac_nn::{Actor, Policy};
 use hac_run::checkpoints::CheckpointStore;
@@ -122,13 +124,10 @@ fn load(args: &ExportArgs) -> Result<Source> {
 fn load_best(args: &ExportArgs) -> Result<Source> {
     let run = neural_run(args)?;
     let env = run.make_env()?;
-    let (record, levels) = run_dir::load_best(&args.run)?;
-    let actors = hac_actor::best_policy(levels, record.weights_version, env.spec(), run.levels)
-        .with_context(|| format!("loading {}", run_dir::best_dir(&args.run).display()))?
-        .into_actors();
+    let (record, policy) = best_policy(&args.run, &run, env.spec())?;
     Ok(Source {
         run,
-        actors,
+        actors: policy.into_actors(),
         updates: None,
         weights_version: Some(record.weights_version),
         description: format!(
@@ -138,6 +137,19 @@ fn load_best(args: &ExportArgs) -> Result<Source> {
             100.0 * record.success_rate
         ),
     })
+}
+
+/// The greedy policy in `weights/best/` of the run in `run_path` (`hac export --best`, `hac eval
+/// --best`), checked against the run's spec and level count, with its record.
+pub fn best_policy(
+    run_path: &Path,
+    run: &RunConfig,
+    spec: &EnvSpec,
+) -> Result<(run_dir::BestRecord, SnapshotPolicy)> {
+    let (record, levels) = run_dir::load_best(run_path)?;
+    let policy = hac_actor::best_policy(levels, record.weights_version, spec, run.levels)
+        .with_context(|| format!("loading {}", run_dir::best_dir(run_path).display()))?;
+    Ok((record, policy))
 }
 
 /// The run's config, refused for a grid world.

@@ -511,10 +511,7 @@ fn eval(args: EvalArgs) -> Result<()> {
     } else if args.best {
         weights = "weights/best/";
         let mut env = run.make_env()?;
-        let (record, levels) = run_dir::load_best(&args.run)?;
-        let mut policy =
-            hac_actor::best_policy(levels, record.weights_version, env.spec(), run.levels)
-                .with_context(|| format!("loading {}", run_dir::best_dir(&args.run).display()))?;
+        let (_, mut policy) = export::best_policy(&args.run, &run, env.spec())?;
         hac_agent::evaluate(
             env.as_mut(),
             &mut policy,

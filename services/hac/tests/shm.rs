@@ -3,73 +3,19 @@
 //! side on one host.
 
 use std::path::{Path, PathBuf};
-use std::process::Child;
 use std::time::{Duration, Instant};
 mod common;
 
-use common::{Processes, all_logs, count, hac, listening_addr, summary};
+use common::{
+    Processes, USING_SHM, actor, all_logs, assert_exactly_once, count, log, refused_while_running,
+    shm_learner as learner, summary,
+};
 
 const DEADLINE: Duration = Duration::from_secs(150);
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-shm-test", name)
 }
-
-fn log(logs: &Path, name: &str) -> String {
-    std::fs::read_to_string(logs.join(format!("{name}.log"))).unwrap()
-}
-
-/// Starts `hac learner --shm` with `args` and returns it with its URL.
-fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
-    let mut all = vec!["learner", "--shm", "--listen", "127.0.0.1:0"];
-    all.extend_from_slice(args);
-    let mut child = hac(&all, logs, name);
-    let addr = listening_addr(&mut child, logs);
-    (child, format!("http://{addr}"))
-}
-
-fn actor(url: &str, name: &str, extra: &[&str], logs: &Path) -> (String, Child) {
-    let mut args = vec!["actor", "--learner", url, "--id", name];
-    args.extend_from_slice(extra);
-    (name.to_string(), hac(&args, logs, name))
-}
-
-fn rejected(summary: &serde_json::Value) -> u64 {
-    summary["rejected"]
-        .as_object()
-        .unwrap()
-        .values()
-        .map(|v| v.as_u64().unwrap())
-        .sum()
-}
-
-/// Refusals other than `finished` (messages still in flight when the run ended, as over gRPC).
-fn refused_while_running(summary: &serde_json::Value) -> Vec<String> {
-    summary["rejected"]
-        .as_object()
-        .unwrap()
-        .keys()
-        .filter(|reason| *reason != "finished")
-        .cloned()
-        .collect()
-}
-
-/// Exactly once: every message that reached the learner was stored, a duplicate of a stored
-/// one, or refused; every transition counted at ingest is in replay once.
-fn assert_exactly_once(s: &serde_json::Value) {
-    assert_eq!(
-        count(s, "messages"),
-        count(s, "batches") + count(s, "episodes_ingested") + count(s, "duplicates") + rejected(s),
-        "{s}"
-    );
-    assert_eq!(
-        count(s, "transitions"),
-        count(s, "transitions_in_replay"),
-        "{s}"
-    );
-}
-
-const USING_SHM: &str = "sending over shared memory";
 
 #[test]
 fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car() {

@@ -128,3 +128,62 @@ impl Drop for Processes {
         }
     }
 }
+
+/// The text of `<logs>/<name>.log`.
+pub fn log(logs: &Path, name: &str) -> String {
+    std::fs::read_to_string(logs.join(format!("{name}.log"))).unwrap()
+}
+
+/// Starts `hac learner --shm` with `args` and returns it with its URL.
+pub fn shm_learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
+    let mut all = vec!["learner", "--shm", "--listen", "127.0.0.1:0"];
+    all.extend_from_slice(args);
+    let mut child = hac(&all, logs, name);
+    let addr = listening_addr(&mut child, logs);
+    (child, format!("http://{addr}"))
+}
+
+/// Starts `hac actor --learner <url> --id <name>` with `extra`; returns it under its name.
+pub fn actor(url: &str, name: &str, extra: &[&str], logs: &Path) -> (String, Child) {
+    let mut args = vec!["actor", "--learner", url, "--id", name];
+    args.extend_from_slice(extra);
+    (name.to_string(), hac(&args, logs, name))
+}
+
+pub fn rejected(summary: &serde_json::Value) -> u64 {
+    summary["rejected"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum()
+}
+
+/// Refusals other than `finished` (messages still in flight when the run ended, as over gRPC).
+pub fn refused_while_running(summary: &serde_json::Value) -> Vec<String> {
+    summary["rejected"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .filter(|reason| *reason != "finished")
+        .cloned()
+        .collect()
+}
+
+/// Exactly once: every message that reached the learner was stored, a duplicate of a stored
+/// one, or refused; every transition counted at ingest is in replay once.
+pub fn assert_exactly_once(s: &serde_json::Value) {
+    assert_eq!(
+        count(s, "messages"),
+        count(s, "batches") + count(s, "episodes_ingested") + count(s, "duplicates") + rejected(s),
+        "{s}"
+    );
+    assert_eq!(
+        count(s, "transitions"),
+        count(s, "transitions_in_replay"),
+        "{s}"
+    );
+}
+
+/// What an actor logs when it sends over shared memory.
+pub const USING_SHM: &str = "sending over shared memory";
