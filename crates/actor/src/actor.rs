@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use hac_agent::{RunConfig, RunConfigError, test_episodes};
 use hac_core::{GaussianExploration, Hierarchy, Mode, Rng};
-use hac_proto::{ActorRole, IngestItem, Registration, WeightsSnapshot};
+use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
 use hac_transport::{ActorLink, EvaluationOf, LinkError};
 
 use crate::{Adder, SnapshotPolicy};
@@ -153,8 +153,7 @@ pub fn run_actor(
         ),
         env,
         dims,
-        max_weights_lag: admission.max_weights_lag,
-        turns: admission.episodes_in_flight > 0,
+        gate: WeightsGate::new(options, &admission),
         summary: ActorSummary {
             incarnation: admission.incarnation,
             ..ActorSummary::default()
@@ -195,13 +194,45 @@ struct State<F> {
     test_rng: Rng,
     hierarchy: Hierarchy,
     adder: Adder,
-    max_weights_lag: u64,
-    /// The learner schedules episodes in turns (`episodes_in_flight` > 0).
-    turns: bool,
+    gate: WeightsGate,
     summary: ActorSummary,
     /// The last weights version found unusable (reported once).
     unusable: Option<u64>,
     on_evaluation: F,
+}
+
+/// How a trainer waits for the weights of its next episode: the one place that chooses among
+/// the three ways of keeping an actor's data fresh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum WeightsGate {
+    /// Weights trained on every episode this actor sent (`lockstep`): with one actor, exactly
+    /// the paper's schedule.
+    Lockstep,
+    /// An episode turn from the learner (`episodes_in_flight` > 0), then the weights it names;
+    /// once the actor's own episode budget is spent, as `Lag`.
+    Turns { max_lag: u64 },
+    /// Any weights at most this many versions behind the learner's newest.
+    Lag { max_lag: u64 },
+}
+
+impl WeightsGate {
+    fn new(options: &ActorOptions, admission: &Admission) -> Self {
+        let max_lag = admission.max_weights_lag;
+        if options.lockstep {
+            Self::Lockstep
+        } else if admission.episodes_in_flight > 0 {
+            Self::Turns { max_lag }
+        } else {
+            Self::Lag { max_lag }
+        }
+    }
+}
+
+/// The weights a trainer's next episode is played with.
+struct NextWeights {
+    snapshot: Arc<WeightsSnapshot>,
+    /// The learner granted this actor an episode turn for it.
+    holding_turn: bool,
 }
 
 struct Actor<'a, F> {
@@ -237,10 +268,10 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             {
                 return Ok(Some(w));
             }
-            if let Some(limit) = self.options.weights_timeout {
-                if started.elapsed() >= limit {
-                    return Err(ActorError::WeightsTimeout(limit));
-                }
+            if let Some(limit) = self.options.weights_timeout
+                && started.elapsed() >= limit
+            {
+                return Err(ActorError::WeightsTimeout(limit));
             }
         }
     }
@@ -272,24 +303,52 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         }
     }
 
+    /// The weights for the trainer's next episode, after `sent` episodes, as its
+    /// [`WeightsGate`] asks; `None` if interrupted first.
+    fn next_weights(&mut self, sent: u64) -> Result<Option<NextWeights>, ActorError> {
+        let budget_left = self.options.max_episodes.is_none_or(|m| sent < m);
+        let snapshot = match self.s.gate {
+            WeightsGate::Lockstep => self.wait_weights(|w, _| w.episodes >= sent)?,
+            WeightsGate::Turns { .. } if budget_left => {
+                return Ok(self.wait_turn_and_weights()?.map(|snapshot| NextWeights {
+                    snapshot,
+                    holding_turn: true,
+                }));
+            }
+            WeightsGate::Turns { max_lag } | WeightsGate::Lag { max_lag } => {
+                self.wait_weights(|w, newest| w.version.saturating_add(max_lag) >= newest)?
+            }
+        };
+        Ok(snapshot.map(|snapshot| NextWeights {
+            snapshot,
+            holding_turn: false,
+        }))
+    }
+
+    /// Whether a trainer evaluates before its next episode, after `sent` episodes: every
+    /// `eval_every_episodes` and after its last, once per count.
+    fn evaluation_due(&self, sent: u64, last_eval: Option<u64>) -> bool {
+        let max = self.options.max_episodes;
+        self.options.eval_every_episodes.is_some_and(|n| {
+            sent > 0
+                && (sent.is_multiple_of(n.max(1)) || max == Some(sent))
+                && last_eval != Some(sent)
+        })
+    }
+
+    /// The trainer's loop: weights for the next episode, an evaluation when one is due, the
+    /// episode, its transitions to the learner.
     fn train(&mut self) -> Result<(), ActorError> {
-        let every = self.options.eval_every_episodes;
         let max = self.options.max_episodes;
         let mut policy: Option<SnapshotPolicy> = None;
         let mut last_eval: Option<u64> = None;
         loop {
             let sent = self.s.summary.episodes;
-            let mut holding_turn = false;
-            let snapshot = if self.options.lockstep {
-                self.wait_weights(|w, _| w.episodes >= sent)?
-            } else if self.s.turns && max.is_none_or(|m| sent < m) {
-                holding_turn = true;
-                self.wait_turn_and_weights()?
-            } else {
-                let lag = self.s.max_weights_lag;
-                self.wait_weights(|w, newest| w.version.saturating_add(lag) >= newest)?
-            };
-            let Some(snapshot) = snapshot else {
+            let Some(NextWeights {
+                snapshot,
+                holding_turn,
+            }) = self.next_weights(sent)?
+            else {
                 return Ok(());
             };
             let Some(mut p) = self.policy_for(policy.take(), &snapshot) else {
@@ -301,10 +360,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                 continue;
             };
             self.s.summary.weights_version = p.version();
-            let eval_due = every.is_some_and(|n| {
-                sent > 0 && (sent % n.max(1) == 0 || max == Some(sent)) && last_eval != Some(sent)
-            });
-            if eval_due {
+            if self.evaluation_due(sent, last_eval) {
                 self.evaluate(&mut p, &snapshot)?;
                 last_eval = Some(sent);
             }
@@ -320,32 +376,38 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             if max.is_some_and(|m| sent >= m) || (self.interrupted() && !holding_turn) {
                 return Ok(());
             }
-            let s = &mut self.s;
-            s.adder.set_weights_version(p.version());
-            let outcome = s.hierarchy.run_episode(
-                s.env.as_mut(),
-                &mut p,
-                &mut s.exploration,
-                Mode::Train,
-                &mut s.train_rng,
-                &mut s.adder,
-            );
-            for item in s.adder.drain() {
-                self.link.send(item).map_err(ActorError::Link)?;
-            }
-            self.link
-                .send(IngestItem::Episode {
-                    env_steps: outcome.steps as u64,
-                    success: outcome.success,
-                    weights_version: p.version(),
-                })
-                .map_err(ActorError::Link)?;
-            s.summary.episodes += 1;
-            s.summary.env_steps += outcome.steps as u64;
-            s.summary.successes += u64::from(outcome.success);
+            self.play_episode(&mut p)?;
             policy = Some(p);
             self.wait_acked()?;
         }
+    }
+
+    /// One training episode with `p`, its transitions and its end sent to the learner.
+    fn play_episode(&mut self, p: &mut SnapshotPolicy) -> Result<(), ActorError> {
+        let s = &mut self.s;
+        s.adder.set_weights_version(p.version());
+        let outcome = s.hierarchy.run_episode(
+            s.env.as_mut(),
+            p,
+            &mut s.exploration,
+            Mode::Train,
+            &mut s.train_rng,
+            &mut s.adder,
+        );
+        for item in s.adder.drain() {
+            self.link.send(item).map_err(ActorError::Link)?;
+        }
+        self.link
+            .send(IngestItem::Episode {
+                env_steps: outcome.steps as u64,
+                success: outcome.success,
+                weights_version: p.version(),
+            })
+            .map_err(ActorError::Link)?;
+        s.summary.episodes += 1;
+        s.summary.env_steps += outcome.steps as u64;
+        s.summary.successes += u64::from(outcome.success);
+        Ok(())
     }
 
     /// Waits for the learner to grant this trainer its next episode turn, then for weights

@@ -2,9 +2,10 @@
 //!
 //! - [`run_actor`]: registers through an [`ActorLink`](hac_transport::ActorLink), takes the
 //!   run's config from the learner, rolls out training episodes (trainers) or greedy test
-//!   episodes (evaluators), applies new weights between episodes, and respects the staleness
-//!   bound (or, with `lockstep`, waits for the updates its own episodes earned; or, when the
-//!   learner schedules episode turns, waits for its turn and plays with the weights it names).
+//!   episodes (evaluators), and applies new weights between episodes. A trainer gets them from
+//!   one weights gate, which respects the staleness bound (or, with `lockstep`, waits for the
+//!   updates its own episodes earned; or, when the learner schedules episode turns, waits for
+//!   its turn and plays with the weights it names).
 //! - [`Adder`]: packs transitions into per-level batches.
 //! - [`SnapshotPolicy`]: a published weights version as the rollout's policy.
 //! - [`train_embedded`]: learner + one actor in one process over the in-process transport: the
@@ -18,4 +19,4 @@ mod policy;
 pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, run_actor};
 pub use adder::Adder;
 pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded};
-pub use policy::{SnapshotError, SnapshotPolicy, best_policy};
+pub use policy::{SnapshotPolicy, UnusableWeights, best_policy};

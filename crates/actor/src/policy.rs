@@ -2,12 +2,12 @@
 //! [`Policy`].
 
 use hac_core::{EnvSpec, LevelDims, Policy};
-use hac_nn::{Actor, NnError};
+use hac_nn::{ActorNet, NnError};
 use hac_proto::WeightsSnapshot;
 
 /// Why a weights snapshot could not be used.
 #[derive(Debug, thiserror::Error)]
-pub enum SnapshotError {
+pub enum UnusableWeights {
     #[error("weights version {version} has {got} levels, the run has {expected}")]
     Levels {
         version: u64,
@@ -42,7 +42,7 @@ pub enum SnapshotError {
 #[derive(Debug)]
 pub struct SnapshotPolicy {
     version: u64,
-    actors: Vec<Actor>,
+    actors: Vec<ActorNet>,
 }
 
 impl SnapshotPolicy {
@@ -51,10 +51,10 @@ impl SnapshotPolicy {
     pub fn from_snapshot(
         snapshot: &WeightsSnapshot,
         dims: &[LevelDims],
-    ) -> Result<Self, SnapshotError> {
+    ) -> Result<Self, UnusableWeights> {
         let version = snapshot.version;
         if snapshot.levels.len() != dims.len() {
-            return Err(SnapshotError::Levels {
+            return Err(UnusableWeights::Levels {
                 version,
                 got: snapshot.levels.len(),
                 expected: dims.len(),
@@ -66,21 +66,22 @@ impl SnapshotPolicy {
             .zip(dims)
             .enumerate()
             .map(|(level, (bytes, &expected))| {
-                let actor =
-                    Actor::from_safetensors(bytes).map_err(|source| SnapshotError::Decode {
+                let actor = ActorNet::from_safetensors(bytes).map_err(|source| {
+                    UnusableWeights::Decode {
                         version,
                         level,
                         source,
-                    })?;
+                    }
+                })?;
                 if let Some(&value) = actor.mlp().tensors().flatten().find(|v| !v.is_finite()) {
-                    return Err(SnapshotError::NotFinite {
+                    return Err(UnusableWeights::NotFinite {
                         version,
                         level,
                         value,
                     });
                 }
                 if actor.dims() != expected {
-                    return Err(SnapshotError::Dims {
+                    return Err(UnusableWeights::Dims {
                         version,
                         level,
                         got: actor.dims(),
@@ -98,7 +99,7 @@ impl SnapshotPolicy {
     }
 
     /// Every level's actor network, level 0 first.
-    pub fn into_actors(self) -> Vec<Actor> {
+    pub fn into_actors(self) -> Vec<ActorNet> {
         self.actors
     }
 }
@@ -110,7 +111,7 @@ pub fn best_policy(
     weights_version: u64,
     spec: &EnvSpec,
     num_levels: usize,
-) -> Result<SnapshotPolicy, SnapshotError> {
+) -> Result<SnapshotPolicy, UnusableWeights> {
     let dims: Vec<LevelDims> = (0..num_levels)
         .map(|level| spec.level_dims(level, num_levels))
         .collect();

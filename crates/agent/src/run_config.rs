@@ -115,25 +115,24 @@ impl RunConfig {
         if self.replay_shards == 0 {
             return invalid("replay_shards", "must be at least 1".into());
         }
-        if let Some(n) = self.max_actions {
-            if let Err(message) = check_max_actions(n) {
-                return invalid("max_actions", message);
-            }
+        if let Some(n) = self.max_actions
+            && let Err(message) = check_max_actions(n)
+        {
+            return invalid("max_actions", message);
         }
-        if let Some(s) = self.stop_at {
-            if !(0.0..=1.0).contains(&s) {
-                return invalid("stop_at", format!("{s} (must be a success rate in [0, 1])"));
-            }
+        if let Some(s) = self.stop_at
+            && !(0.0..=1.0).contains(&s)
+        {
+            return invalid("stop_at", format!("{s} (must be a success rate in [0, 1])"));
         }
         let env = self.make_env().map_err(|source| RunConfigError::Env {
             origin: origin.to_string(),
             source,
         })?;
-        if let Some(bounds) = &self.subgoal_bounds {
-            if let Err(message) = check_subgoal_bounds(&self.env, bounds, env.spec().subgoal_dim())
-            {
-                return invalid("subgoal_bounds", message);
-            }
+        if let Some(bounds) = &self.subgoal_bounds
+            && let Err(message) = check_subgoal_bounds(&self.env, bounds, env.spec().subgoal_dim())
+        {
+            return invalid("subgoal_bounds", message);
         }
         if self.is_tabular() != self.tabular.is_some() {
             return invalid(

@@ -42,8 +42,8 @@ impl Noise {
     }
 }
 
-/// HAC hyperparameters. Every field has a meaning in HAC.md; the defaults for a given
-/// environment and level count come from `Env::default_config`.
+/// HAC hyperparameters. Every field has a meaning in docs/ALGORITHM.md; the defaults for a
+/// given environment and level count come from `Env::default_config`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AgentConfig {
@@ -75,8 +75,8 @@ pub struct AgentConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_tau: Option<f32>,
     /// Weight of an L2 penalty on the actor's pre-`tanh` outputs (mean square), added to its
-    /// loss `-Q`; 0 = HAC.md's actor loss. A safeguard against an actor stuck at a corner of its
-    /// bounds where a saturated critic gives no gradient.
+    /// loss `-Q`; 0 = the paper's actor loss. A safeguard against an actor stuck at a corner of
+    /// its bounds where a saturated critic gives no gradient.
     #[serde(default)]
     pub actor_preactivation_l2: f32,
     /// Compute the critic's slope `-H s (1 - s)` from its pre-sigmoid output instead of from
@@ -94,11 +94,11 @@ pub struct AgentConfig {
 }
 
 impl AgentConfig {
-    /// HAC.md's reference hyperparameters for `levels` levels with horizon `horizon`: lambda 0.3,
-    /// 20% random actions, noise 0.1 of the half range, 3 replay goals, gamma 0.98, 3 hidden
+    /// The paper's reference hyperparameters for `levels` levels with horizon `horizon`: lambda
+    /// 0.3, 20% random actions, noise 0.1 of the half range, 3 replay goals, gamma 0.98, 3 hidden
     /// layers of 64, Adam at 1e-3, batches of 1024, 40 updates per episode, no target networks,
     /// 200 episodes stored, 50 training episodes then 100 test episodes per round. Environments
-    /// start here and override what ENVS.md sets differently.
+    /// start here and override what the task sets differently (docs/ENVIRONMENTS.md).
     pub fn reference(levels: usize, horizon: usize) -> Self {
         Self {
             levels,
@@ -198,13 +198,13 @@ impl AgentConfig {
                 "needs at least one layer, each at least 1 wide".into(),
             ));
         }
-        if let Some(tau) = self.target_tau {
-            if !(tau > 0.0 && tau <= 1.0) {
-                return Err(ConfigError::invalid(
-                    "target_tau",
-                    format!("must be in (0, 1], got {tau}"),
-                ));
-            }
+        if let Some(tau) = self.target_tau
+            && !(tau > 0.0 && tau <= 1.0)
+        {
+            return Err(ConfigError::invalid(
+                "target_tau",
+                format!("must be in (0, 1], got {tau}"),
+            ));
         }
         let l2 = self.actor_preactivation_l2;
         if !(l2.is_finite() && l2 >= 0.0) {

@@ -13,7 +13,7 @@ pub enum Mode {
     Test,
 }
 
-/// Everything static an environment says about itself (ENVS.md's list).
+/// Everything static an environment says about itself (docs/ENVIRONMENTS.md lists each task's).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EnvSpec {
     /// Registry name, e.g. `pendulum`.
@@ -111,7 +111,7 @@ impl EnvSpec {
 /// The smallest H with `H^levels >= max_actions`, i.e. `ceil(max_actions^(1/levels))` computed
 /// exactly: the horizon at which the top level's H attempts can just cover the episode budget
 /// (the rule that gives the paper's pendulum H = 1000 / 32 / 10). Environments use it for the
-/// level counts ENVS.md gives no H for, the grid worlds for all.
+/// level counts a task gives no H for, the grid worlds for all.
 pub fn horizon_covering(max_actions: usize, levels: usize) -> usize {
     let levels = u32::try_from(levels.max(1)).unwrap_or(u32::MAX);
     (1..max_actions)
@@ -142,7 +142,7 @@ pub trait Env: Send + std::fmt::Debug {
     /// bounds their random subgoals. Callers pass `spec().subgoal_dim()` dimensions.
     fn set_subgoal_bounds(&mut self, bounds: Bounds);
 
-    /// The recommended hyperparameters for a hierarchy of `levels` levels (ENVS.md's defaults).
+    /// The recommended hyperparameters for a hierarchy of `levels` levels (docs/ENVIRONMENTS.md).
     fn default_config(&self, levels: usize) -> AgentConfig;
 
     /// Draws an initial state from the initial-state distribution.

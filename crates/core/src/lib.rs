@@ -1,5 +1,8 @@
 //! HAC core: everything about Hierarchical Actor-Critic that involves no IO and no learning.
 //!
+//! - [`rates`]: [`RateWindow`](rates::RateWindow), per-second rates of counters over a sliding
+//!   window, and [`TokenBucket`](rates::TokenBucket), a message rate limit (status and admission
+//!   of the processes; clocks are passed in).
 //! - [`rng`]: the seeded, portable random generator all components draw from.
 //! - [`bounds`]: boxes (action and subgoal bounds) and the per-dimension goal test.
 //! - [`env`]: the [`Env`] trait and the static [`EnvSpec`] every environment describes.
@@ -14,6 +17,7 @@ pub mod bounds;
 pub mod config;
 pub mod env;
 pub mod limits;
+pub mod rates;
 pub mod rng;
 pub mod rollout;
 pub mod transition;

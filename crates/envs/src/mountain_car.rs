@@ -144,8 +144,9 @@ impl Env for MountainCar {
         self.spec.subgoal_bounds = bounds;
     }
 
-    /// The PyTorch port's preset (ENVS.md; the port's `train.py`, `HAC.py`, `utils.py` and
-    /// README) at every level count; where it says nothing, the values are ours and say so.
+    /// The PyTorch port's preset (docs/ENVIRONMENTS.md; the port's `train.py`, `HAC.py`,
+    /// `utils.py` and README) at every level count; where it says nothing, the values are ours and
+    /// say so.
     fn default_config(&self, levels: usize) -> AgentConfig {
         AgentConfig {
             levels,

@@ -12,10 +12,10 @@
 //! ```
 //!
 //! Semi-implicit Euler with dt = 0.002 s (velocity from the current angle first, then the angle
-//! from the new velocity), 10 steps per primitive action, as ENVS.md states. Damping is explicit
-//! like every other force; MuJoCo's Euler would treat it implicitly, which changes the damping
-//! term by about dt b / I = 8e-4 of itself per step. Physics runs in f64; observations and goals
-//! are f32.
+//! from the new velocity), 10 steps per primitive action (docs/ENVIRONMENTS.md). Damping is
+//! explicit like every other force; MuJoCo's Euler would treat it implicitly, which changes the
+//! damping term by about dt b / I = 8e-4 of itself per step. Physics runs in f64; observations and
+//! goals are f32.
 
 use std::f32::consts::PI as PI_F32;
 
@@ -189,7 +189,8 @@ impl Env for Pendulum {
         self.spec.subgoal_bounds = bounds;
     }
 
-    /// HAC.md's reference values, with ENVS.md's pendulum specifics (H, noise, storage, schedule).
+    /// The paper's reference values, with the pendulum's own H, noise, storage and schedule
+    /// (docs/ENVIRONMENTS.md).
     fn default_config(&self, levels: usize) -> AgentConfig {
         // The covering rule of `stated_horizon` reproduces 1000, 32 and 10 here.
         let horizon = stated_horizon(levels, self.spec.max_actions, [32, 10]);

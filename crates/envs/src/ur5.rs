@@ -2,7 +2,8 @@
 //! integrated directly from the rigid-body model the reference simulated in MuJoCo.
 //!
 //! The chain, its inertias and the dynamics algorithms live in [`arm`]; this module is the task:
-//! velocity-servo actuators, integration, spaces, goal distributions and defaults (ENVS.md).
+//! velocity-servo actuators, integration, spaces, goal distributions and defaults
+//! (docs/ENVIRONMENTS.md).
 //!
 //! Physics per step of dt = 0.002 s (15 per primitive action), in f64:
 //!
@@ -25,9 +26,9 @@
 //! conserves energy (tests integrate it with RK4). Against the 20 N m s/rad of damping plus
 //! servo that every joint sees in the task, that numerical loss is negligible.
 //!
-//! Angles: ENVS.md wraps every angle to (-pi, pi], and so does this task, in the state, the
+//! Angles: every task wraps its angles to (-pi, pi], and so does this one, in the state, the
 //! projections and the goals. The reference leaves MuJoCo's joint positions unwrapped and folds
-//! them into (-2pi, 2pi) only when projecting, hence its subgoal bounds of +-2pi, which ENVS.md
+//! them into (-2pi, 2pi) only when projecting, hence its subgoal bounds of +-2pi, which this task
 //! keeps (they also set the subgoal noise scale, a fraction of the half range). Goal checks
 //! compare the joint angles along the circle (`EnvSpec::end_goal_angles` / `subgoal_angles`):
 //! a subgoal angle names a direction, so every point of the +-2pi box is a reachable subgoal
@@ -69,7 +70,7 @@ const MAX_ACTIONS: usize = 600;
 /// plus 10 from the joint), and gravity's torque is below 40 N m, so the speeds settle near the
 /// command; random bang-bang control stays below 15 rad/s (tested).
 const MAX_SPEED: f32 = 50.0;
-/// Goal rule (ENVS.md): minimum heights of the elbow and the wrist point, m.
+/// Goal rule (docs/ENVIRONMENTS.md): minimum heights of the elbow and the wrist point, m.
 const MIN_ELBOW_HEIGHT: f64 = 0.05;
 const MIN_WRIST_HEIGHT: f64 = 0.15;
 
@@ -165,7 +166,7 @@ impl Ur5Reacher {
         self.arm.kinetic_energy(&pose, &self.qd) + self.arm.potential_energy(&pose)
     }
 
-    /// Whether joint angles `goal` pass ENVS.md's redraw rule: the pan more than pi/4 from zero
+    /// Whether joint angles `goal` pass the redraw rule: the pan more than pi/4 from zero
     /// either way, the elbow higher than 0.05 m and the wrist point higher than 0.15 m.
     pub fn is_valid_end_goal(&self, goal: &[f32]) -> bool {
         let q = Vector3::from_fn(|i, _| f64::from(goal[i]));
@@ -266,19 +267,20 @@ impl Env for Ur5Reacher {
         self.spec.subgoal_bounds = bounds;
     }
 
-    /// HAC.md's reference values, with ENVS.md's UR5 specifics (H, noise, storage, schedule).
+    /// The paper's reference values, with the UR5's own H, noise, storage and schedule
+    /// (docs/ENVIRONMENTS.md).
     fn default_config(&self, levels: usize) -> AgentConfig {
         // The covering rule of `stated_horizon` would give 9, not 10, for 3 levels here.
         let horizon = stated_horizon(levels, self.spec.max_actions, [25, 10]);
         AgentConfig {
-            // ENVS.md: primitive 0.1 and subgoal 0.03, as fractions of the half range.
+            // The reference's: primitive 0.1 and subgoal 0.03, as fractions of the half range.
             subgoal_noise: Noise::Relative(0.03),
             episodes_to_store: 500,
             ..AgentConfig::reference(levels, horizon)
         }
     }
 
-    /// Pan uniform in [-pi/8, pi/8], lift and elbow at ENVS.md's fixed angles, at rest.
+    /// Pan uniform in [-pi/8, pi/8], lift and elbow at the reference's fixed angles, at rest.
     fn reset(&mut self, rng: &mut Rng) {
         let pan = rng.uniform(-PI_F32 / 8.0, PI_F32 / 8.0);
         let [lift, elbow] = INITIAL_LIFT_AND_ELBOW;
@@ -481,9 +483,9 @@ mod tests {
     /// integrates that exactly.
     #[test]
     fn pan_spins_up_at_torque_over_inertia() {
-        // Moment of inertia about the vertical pan axis, by hand from ENVS.md: the shoulder's
-        // own z moment, then each link's moment about its centre of mass about the world z axis
-        // (the link's x axis once the 90 degree quaternion has turned it) plus m d^2 for the
+        // Moment of inertia about the vertical pan axis, by hand from the model's figures: the
+        // shoulder's own z moment, then each link's moment about its centre of mass about the world
+        // z axis (the link's x axis once the 90 degree quaternion has turned it) plus m d^2 for the
         // horizontal distance of its centre of mass from the axis.
         let upper = 0.226891 + 8.393 * (0.28f64.powi(2) + 0.13585f64.powi(2));
         let fore = 0.0494433 + 2.275 * (0.675f64.powi(2) + (0.13585f64 - 0.1197).powi(2));
@@ -709,7 +711,7 @@ mod tests {
         assert!(low < -0.9 * FRAC_PI_8 && high > 0.9 * FRAC_PI_8);
     }
 
-    /// Goal samples obey ENVS.md's rule, checked with the reference's closed-form heights rather
+    /// Goal samples obey the redraw rule, checked with the reference's closed-form heights rather
     /// than this environment's kinematics; and the rule does reject part of the box.
     #[test]
     fn end_goal_samples_satisfy_the_redraw_rules() {

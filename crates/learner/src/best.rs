@@ -13,24 +13,12 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use hac_proto::WeightsSnapshot;
+use hac_proto::{BestWeights, WeightsSnapshot};
 
 /// How many of the newest published snapshots stay available to become the best. Evaluations
 /// test a version the evaluator received a moment ago (the lockstep trainer, the current one);
 /// an evaluation of a version older than this many publications cannot become the best.
 pub const RECENT_SNAPSHOTS: usize = 64;
-
-/// The weights of the best test round so far.
-#[derive(Debug, Clone)]
-pub struct BestWeights {
-    /// 1-based, as on the learning curve.
-    pub round: usize,
-    /// Training episodes behind the weights (the curve's x).
-    pub episodes: u64,
-    pub env_steps: u64,
-    pub success_rate: f32,
-    pub snapshot: Arc<WeightsSnapshot>,
-}
 
 /// The newest published snapshots, oldest first; a bounded ring of shared pointers (publishing
 /// already made each snapshot, so keeping one costs no copy).

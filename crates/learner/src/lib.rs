@@ -37,8 +37,6 @@
 
 mod best;
 mod checkpoint;
-mod published;
-mod rates;
 pub mod wal;
 
 use std::collections::{BTreeMap, HashMap};
@@ -60,15 +58,12 @@ use hac_replay::{
 use parking_lot::{Condvar, Mutex, RwLock};
 use sha2::{Digest, Sha256};
 
+pub use best::RECENT_SNAPSHOTS;
 use best::RecentSnapshots;
-pub use best::{BestWeights, RECENT_SNAPSHOTS};
 pub use checkpoint::{CheckpointError, LearnerCheckpoint};
-pub use published::Published;
-pub use rates::{RateWindow, TokenBucket};
+pub use hac_core::rates::{RATES_WINDOW, RateWindow, TokenBucket};
+pub use hac_proto::{BestWeights, Published, RejectReason};
 pub use wal::{Wal, WalError, WalOptions, WalStatus};
-
-/// The span status rates are averaged over.
-pub const RATES_WINDOW: Duration = Duration::from_secs(10);
 
 /// How the learner runs (not part of the algorithm's hyperparameters).
 #[derive(Debug, Clone, PartialEq)]
@@ -124,6 +119,62 @@ impl LearnerOptions {
             wal: None,
         }
     }
+
+    /// Checks every option against its range. The daemon's flags, `HAC_*` variables and config
+    /// file keys are checked by their own parsers before this runs; this guards every other way
+    /// of building options (the embedded run, tests, library users).
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        if self.max_batch_transitions == 0 || self.max_batch_transitions > 1 << 20 {
+            return Err(InvalidOption::MaxBatchTransitions(
+                self.max_batch_transitions,
+            ));
+        }
+        if self.publish_every_updates == 0 {
+            return Err(InvalidOption::PublishEveryUpdates);
+        }
+        if !(self.error_buffer_episodes.is_finite() && self.error_buffer_episodes >= 1.0) {
+            return Err(InvalidOption::ErrorBufferEpisodes(
+                self.error_buffer_episodes,
+            ));
+        }
+        if self.episodes_in_flight > 1024 {
+            return Err(InvalidOption::EpisodesInFlight(self.episodes_in_flight));
+        }
+        if self.turn_lease.is_zero() {
+            return Err(InvalidOption::TurnLease);
+        }
+        if self.forget_actors_after.is_zero() {
+            return Err(InvalidOption::ForgetActorsAfter);
+        }
+        if let Some(rate) = self.max_actor_messages_per_second
+            && !(rate.is_finite() && rate > 0.0)
+        {
+            return Err(InvalidOption::MaxActorMessagesPerSecond(rate));
+        }
+        Ok(())
+    }
+}
+
+/// A [`LearnerOptions`] field outside its range, one variant per field.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InvalidOption {
+    #[error("invalid value for `max_batch_transitions`: must be 1 to 1048576, got {0}")]
+    MaxBatchTransitions(usize),
+    #[error("invalid value for `publish_every_updates`: must be at least 1")]
+    PublishEveryUpdates,
+    #[error("invalid value for `error_buffer_episodes`: must be at least 1, got {0}")]
+    ErrorBufferEpisodes(f64),
+    #[error("invalid value for `episodes_in_flight`: must be 0 (no turns) to 1024, got {0}")]
+    EpisodesInFlight(u32),
+    #[error("invalid value for `turn_lease`: must be above 0 seconds")]
+    TurnLease,
+    #[error("invalid value for `forget_actors_after`: must be above 0 seconds")]
+    ForgetActorsAfter,
+    #[error(
+        "invalid value for `max_actor_messages_per_second`: must be a positive number of messages \
+         per second, got {0}"
+    )]
+    MaxActorMessagesPerSecond(f64),
 }
 
 /// Why the learner could not start.
@@ -131,8 +182,11 @@ impl LearnerOptions {
 pub enum StartError {
     #[error(transparent)]
     Config(#[from] hac_agent::RunConfigError),
-    #[error("invalid value for `{key}`: {message}")]
-    Option { key: &'static str, message: String },
+    #[error(transparent)]
+    Options(#[from] InvalidOption),
+    /// The run's environment is not one this learner serves (a grid world), or cannot be made.
+    #[error("invalid value for `env`: {0}")]
+    Env(String),
     #[error("level {level}: invalid rate limiter setting `{}`: {source}", source.field())]
     RateLimiter {
         level: usize,
@@ -154,82 +208,6 @@ pub enum RegisterError {
     EmptyActorId,
     #[error("the run is finished")]
     Finished,
-}
-
-/// What a rejected input was, for the counts in status. Every rejection is counted under
-/// exactly one reason.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum RejectReason {
-    /// Bytes that do not decode as the expected message (counted by the transport).
-    Malformed,
-    /// A message above the size limit (counted by the transport).
-    Oversized,
-    /// A required field missing or a field of the wrong length or count.
-    InvalidBatch,
-    /// NaN or infinity in a float field.
-    NotFinite,
-    /// A finite value the environment or the level cannot produce (a state outside the
-    /// environment's box, a reward not in {0, -1, -H}, an episode longer than the budget).
-    OutOfRange,
-    LevelOutOfRange,
-    UnknownActor,
-    StaleIncarnation,
-    SequenceGap,
-    /// Transitions from an evaluator, or an evaluation from an unknown actor.
-    WrongRole,
-    /// Credentials missing or wrong (counted by the transport).
-    Unauthenticated,
-    /// Input after the run finished.
-    Finished,
-    /// An evaluation of weights another learner process published (before a restart).
-    StaleWeights,
-}
-
-impl RejectReason {
-    pub const ALL: [RejectReason; 13] = [
-        Self::Malformed,
-        Self::Oversized,
-        Self::InvalidBatch,
-        Self::NotFinite,
-        Self::OutOfRange,
-        Self::LevelOutOfRange,
-        Self::UnknownActor,
-        Self::StaleIncarnation,
-        Self::SequenceGap,
-        Self::WrongRole,
-        Self::Unauthenticated,
-        Self::Finished,
-        Self::StaleWeights,
-    ];
-
-    /// The snake_case name used in status and metrics.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Malformed => "malformed",
-            Self::Oversized => "oversized",
-            Self::InvalidBatch => "invalid_batch",
-            Self::NotFinite => "not_finite",
-            Self::OutOfRange => "out_of_range",
-            Self::LevelOutOfRange => "level_out_of_range",
-            Self::UnknownActor => "unknown_actor",
-            Self::StaleIncarnation => "stale_incarnation",
-            Self::SequenceGap => "sequence_gap",
-            Self::WrongRole => "wrong_role",
-            Self::Unauthenticated => "unauthenticated",
-            Self::Finished => "finished",
-            Self::StaleWeights => "stale_weights",
-        }
-    }
-
-    fn of_wire(e: &WireError) -> Self {
-        match e {
-            WireError::NotFinite { .. } => Self::NotFinite,
-            WireError::LevelOutOfRange { .. } => Self::LevelOutOfRange,
-            WireError::CountAboveLimit { .. } => Self::Oversized,
-            WireError::Packed(_) => Self::Malformed,
-            _ => Self::InvalidBatch,
-        }
-    }
 }
 
 /// Why an ingest message or evaluation report was refused. Nothing of a refused message is
@@ -582,7 +560,7 @@ pub struct LevelStatus {
 
 /// A status snapshot of one actor.
 #[derive(Debug, Clone)]
-pub struct ActorStatus {
+pub struct RegisteredActor {
     pub actor_id: String,
     pub role: ActorRole,
     pub hostname: String,
@@ -644,7 +622,7 @@ pub struct LearnerStatus {
     pub rates: Rates,
     pub levels: Vec<LevelStatus>,
     /// Sorted by id.
-    pub actors: Vec<ActorStatus>,
+    pub actors: Vec<RegisteredActor>,
     /// The write-ahead log, if the learner keeps one.
     pub wal: Option<WalStatus>,
 }
@@ -677,52 +655,14 @@ impl Learner {
     ) -> Result<Self, StartError> {
         run.validate("the run config")?;
         if run.is_tabular() {
-            return Err(StartError::Option {
-                key: "env",
-                message: format!(
-                    "`{}` is a grid world for the tabular learner (`hac train`), not the \
-                     neural learner service",
-                    run.env
-                ),
-            });
+            return Err(StartError::Env(format!(
+                "`{}` is a grid world for the tabular learner (`hac train`), not the neural \
+                 learner service",
+                run.env
+            )));
         }
-        let option = |key, message: &str| {
-            Err(StartError::Option {
-                key,
-                message: message.into(),
-            })
-        };
-        if options.max_batch_transitions == 0 || options.max_batch_transitions > 1 << 20 {
-            return option("max_batch_transitions", "must be 1 to 1048576");
-        }
-        if options.publish_every_updates == 0 {
-            return option("publish_every_updates", "must be at least 1");
-        }
-        if !(options.error_buffer_episodes.is_finite() && options.error_buffer_episodes >= 1.0) {
-            return option("error_buffer_episodes", "must be at least 1");
-        }
-        if options.episodes_in_flight > 1024 {
-            return option("episodes_in_flight", "must be 0 (no turns) to 1024");
-        }
-        if options.turn_lease.is_zero() {
-            return option("turn_lease", "must be above 0 seconds");
-        }
-        if options.forget_actors_after.is_zero() {
-            return option("forget_actors_after", "must be above 0 seconds");
-        }
-        if options
-            .max_actor_messages_per_second
-            .is_some_and(|r| !(r.is_finite() && r > 0.0))
-        {
-            return option(
-                "max_actor_messages_per_second",
-                "must be a positive number of messages per second",
-            );
-        }
-        let env = run.make_env().map_err(|e| StartError::Option {
-            key: "env",
-            message: e.to_string(),
-        })?;
+        options.validate()?;
+        let env = run.make_env().map_err(|e| StartError::Env(e.to_string()))?;
         let spec: EnvSpec = env.spec().clone();
         let config = &run.agent;
         let dims: Vec<LevelDims> = (0..config.levels)
@@ -1850,7 +1790,7 @@ impl Shared {
                 }
                 let status = limiter.status();
                 let caught_up = status.updates == slot.completed && status.deficit < 1.0;
-                if caught_up || slot.completed % every == 0 {
+                if caught_up || slot.completed.is_multiple_of(every) {
                     slot.weights = Arc::new(learner.actor().to_safetensors());
                     slot.weights_updates = slot.completed;
                     // Under sustained ingest a level is rarely caught up, yet these weights
@@ -2034,7 +1974,7 @@ impl Shared {
             .collect();
         let weights_version = self.publisher.lock().version;
         let now = Instant::now();
-        let mut actors: Vec<ActorStatus> = self
+        let mut actors: Vec<RegisteredActor> = self
             .actors
             .read()
             .iter()
@@ -2042,7 +1982,7 @@ impl Shared {
                 let mut a = entry.lock();
                 let env_steps = a.env_steps;
                 let (_, rate) = a.env_steps_rate.rates(now, &[env_steps]);
-                ActorStatus {
+                RegisteredActor {
                     actor_id: id.clone(),
                     role: a.role,
                     hostname: a.hostname.clone(),

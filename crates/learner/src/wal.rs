@@ -567,11 +567,12 @@ impl Inner {
             self.segments.fetch_add(1, Ordering::Relaxed);
             Ok::<(), WalError>(())
         };
-        if cut.is_none() && *written >= self.options.segment_bytes {
-            if let Some(lsn) = first_lsn_of(group) {
-                rotate(file, path, lsn)?;
-                *written = 0;
-            }
+        if cut.is_none()
+            && *written >= self.options.segment_bytes
+            && let Some(lsn) = first_lsn_of(group)
+        {
+            rotate(file, path, lsn)?;
+            *written = 0;
         }
         let split = cut.map_or(group.len(), |(at, _)| at);
         let write = |file: &mut File, path: &Path, bytes: &[u8]| {

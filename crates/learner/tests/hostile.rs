@@ -157,10 +157,10 @@ proptest! {
         let mut honest_sequence = 0;
         for (i, raw) in raws.iter().enumerate() {
             let msg = message(raw, &dims, &incarnations);
-            if let Ok(Stored::New) = learner.ingest(&msg) {
-                if let IngestItem::Batch(b) = &msg.item {
-                    accepted += b.batch.len as u64;
-                }
+            if let Ok(Stored::New) = learner.ingest(&msg)
+                && let IngestItem::Batch(b) = &msg.item
+            {
+                accepted += b.batch.len as u64;
             }
             // An honest actor keeps sending between the hostile messages, so that the trainers
             // have something to train on.
@@ -195,7 +195,7 @@ proptest! {
         std::thread::sleep(Duration::from_millis(20));
         let weights = learner.weights().latest().unwrap();
         for level in &weights.levels {
-            let actor = hac_nn::Actor::from_safetensors(level).unwrap();
+            let actor = hac_nn::ActorNet::from_safetensors(level).unwrap();
             prop_assert!(actor.mlp().tensors().flatten().all(|v| v.is_finite()));
         }
         let diverged: u64 = status.levels.iter().map(|l| l.diverged_updates).sum();

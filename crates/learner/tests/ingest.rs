@@ -646,7 +646,7 @@ fn a_learner_whose_updates_explode_publishes_only_finite_weights_and_says_why() 
     );
     let weights = learner.weights().latest().unwrap();
     for level in &weights.levels {
-        let actor = hac_nn::Actor::from_safetensors(level).unwrap();
+        let actor = hac_nn::ActorNet::from_safetensors(level).unwrap();
         assert!(actor.mlp().tensors().flatten().all(|v| v.is_finite()));
     }
     learner.shutdown();

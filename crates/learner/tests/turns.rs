@@ -8,7 +8,9 @@ use std::time::{Duration, Instant};
 
 use hac_agent::RunConfig;
 use hac_core::Batch;
-use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, StartError, Turn};
+use hac_learner::{
+    IngestError, InvalidOption, Learner, LearnerOptions, RejectReason, StartError, Turn,
+};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
 mod common;
@@ -285,10 +287,7 @@ fn a_limit_above_1024_is_refused_by_name() {
     assert!(
         matches!(
             err,
-            StartError::Option {
-                key: "episodes_in_flight",
-                ..
-            }
+            StartError::Options(InvalidOption::EpisodesInFlight(1025))
         ),
         "{err}"
     );

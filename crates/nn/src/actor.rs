@@ -10,10 +10,10 @@ use crate::{Mlp, MlpGrads, MlpWorkspace, NnError};
 /// Value of the `format` metadata entry of an actor file.
 const FORMAT: &str = "hac-nn/actor";
 
-/// A level's deterministic policy. Cheap to clone and `Send`, so rollouts and remote actors can hold
-/// their own copy; [`Actor::act`] allocates nothing.
+/// A level's deterministic policy. Cheap to clone and `Send`, so rollouts and remote actors can
+/// hold their own copy; [`ActorNet::act`] allocates nothing.
 #[derive(Debug, Clone)]
-pub struct Actor {
+pub struct ActorNet {
     dims: LevelDims,
     mlp: Mlp,
     scale: Vec<f32>,
@@ -22,7 +22,7 @@ pub struct Actor {
     single: MlpWorkspace,
 }
 
-impl Actor {
+impl ActorNet {
     /// A freshly initialised actor for a level with `dims`, acting within `bounds`, with hidden
     /// layers of the given widths.
     ///
@@ -104,7 +104,8 @@ impl Actor {
     }
 
     /// The actor as a safetensors file: layers `layers.{l}.weight` (`[out, in]`) and
-    /// `layers.{l}.bias`, `output_scale`, `output_offset`; metadata `format`, `state_dim`, `goal_dim`.
+    /// `layers.{l}.bias`, `output_scale`, `output_offset`; metadata `format`, `state_dim`,
+    /// `goal_dim`.
     pub fn to_safetensors(&self) -> Vec<u8> {
         let mut out = TensorWriter::default();
         out.meta("format".into(), FORMAT);
@@ -112,8 +113,8 @@ impl Actor {
         out.finish()
     }
 
-    /// Reads what [`Actor::to_safetensors`] wrote; the architecture comes from the tensor shapes,
-    /// which must be consistent with each other and with the metadata.
+    /// Reads what [`ActorNet::to_safetensors`] wrote; the architecture comes from the tensor
+    /// shapes, which must be consistent with each other and with the metadata.
     pub fn from_safetensors(bytes: &[u8]) -> Result<Self, NnError> {
         let file = TensorReader::new(bytes)?;
         file.expect_format(FORMAT)?;
@@ -170,7 +171,7 @@ impl Actor {
     }
 
     /// Forward pass on a batch; leaves `tanh(x)` (not yet scaled) in `ws.output()`, which
-    /// [`Actor::write_actions`] and [`Actor::backward_batch`] use.
+    /// [`ActorNet::write_actions`] and [`ActorNet::backward_batch`] use.
     pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace) {
         self.mlp.forward(ws);
         for v in ws.output_mut() {
@@ -178,8 +179,8 @@ impl Actor {
         }
     }
 
-    /// [`Actor::forward_batch`] that also copies the pre-activations `x` (before `tanh`) into
-    /// `pre` (resized to `action x batch`), for [`Actor::backward_batch`]'s penalty: at
+    /// [`ActorNet::forward_batch`] that also copies the pre-activations `x` (before `tanh`) into
+    /// `pre` (resized to `action x batch`), for [`ActorNet::backward_batch`]'s penalty: at
     /// saturation `tanh(x)` rounds to 1 and cannot give `x` back.
     pub(crate) fn forward_batch_keeping_pre(&self, ws: &mut MlpWorkspace, pre: &mut Vec<f32>) {
         self.mlp.forward(ws);
@@ -190,7 +191,7 @@ impl Actor {
         }
     }
 
-    /// Writes the actions of the last [`Actor::forward_batch`] into rows `row..row + action` of
+    /// Writes the actions of the last [`ActorNet::forward_batch`] into rows `row..row + action` of
     /// the column-major `dst_rows x batch` matrix `dst`.
     pub(crate) fn write_actions(
         &self,
@@ -218,7 +219,7 @@ impl Actor {
     /// Sets `grads` to the parameter gradient, given the loss gradient with respect to the actions
     /// in `ws.output_grad_mut()` (consumed).
     ///
-    /// With `penalty = Some((pre, c))` (`pre` from [`Actor::forward_batch_keeping_pre`]) the
+    /// With `penalty = Some((pre, c))` (`pre` from [`ActorNet::forward_batch_keeping_pre`]) the
     /// loss also holds `c sum(x^2) / (action x batch)`, the pre-activations' mean square, whose
     /// gradient `2 c x / (action x batch)` still pulls a saturated output back where the
     /// action gradient through `tanh` has vanished.
@@ -267,13 +268,13 @@ mod tests {
         Bounds::new(vec![-2.0, 1.0], vec![0.5, 3.0])
     }
 
-    fn actor(seed: u64) -> Actor {
-        Actor::new(DIMS, &bounds(), &[7, 8], &mut Rng::seed_from(seed))
+    fn actor(seed: u64) -> ActorNet {
+        ActorNet::new(DIMS, &bounds(), &[7, 8], &mut Rng::seed_from(seed))
     }
 
     /// Runs the batched forward pass and returns the actions, `action x n`.
     fn batch_actions(
-        actor: &Actor,
+        actor: &ActorNet,
         ws: &mut MlpWorkspace,
         states: &[f32],
         goals: &[f32],
@@ -285,7 +286,7 @@ mod tests {
         a
     }
 
-    /// Checks [`Actor::backward_batch`] against finite differences of the loss
+    /// Checks [`ActorNet::backward_batch`] against finite differences of the loss
     /// `sum(R * action) + c mean(x^2)` (`x` the pre-activations; `c` 0 without a penalty) on the
     /// f64 reference network, with weights far from the small initial output layer so that tanh
     /// is far from linear.
@@ -376,14 +377,14 @@ mod tests {
     #[test]
     fn actor_is_clone_and_send() {
         fn check<T: Clone + Send + 'static>() {}
-        check::<Actor>();
+        check::<ActorNet>();
     }
 
     #[test]
     fn safetensors_round_trip_is_exact() {
         let mut a = actor(14);
         let bytes = a.to_safetensors();
-        let mut b = Actor::from_safetensors(&bytes).expect("round trip");
+        let mut b = ActorNet::from_safetensors(&bytes).expect("round trip");
         assert_eq!(a.mlp(), b.mlp());
         assert_eq!(a.dims(), b.dims());
         assert_eq!(b.to_safetensors(), bytes);
@@ -399,7 +400,7 @@ mod tests {
         for len in [0, 7, 100, bytes.len() - 1] {
             assert!(
                 matches!(
-                    Actor::from_safetensors(&bytes[..len]),
+                    ActorNet::from_safetensors(&bytes[..len]),
                     Err(NnError::Format(_))
                 ),
                 "truncated to {len} bytes"
@@ -427,7 +428,7 @@ mod tests {
             layer(out, 1, 2, 4);
             head(out, 2);
         });
-        assert_eq!(Actor::from_safetensors(&good).unwrap().dims().action, 2);
+        assert_eq!(ActorNet::from_safetensors(&good).unwrap().dims().action, 2);
 
         let chained_wrong = file(&|out| {
             layer(out, 0, 4, 3);
@@ -455,12 +456,12 @@ mod tests {
             ("output scale", head_wrong),
             ("bias", bias_wrong),
         ] {
-            let err = Actor::from_safetensors(&bytes).expect_err(what);
+            let err = ActorNet::from_safetensors(&bytes).expect_err(what);
             assert!(matches!(err, NnError::Shape { .. }), "{what}: {err}");
         }
         let no_layers = file(&|out| head(out, 2));
         assert!(matches!(
-            Actor::from_safetensors(&no_layers),
+            ActorNet::from_safetensors(&no_layers),
             Err(NnError::MissingTensor(_))
         ));
     }

@@ -18,14 +18,14 @@ pub const INITIAL_Q: f32 = 0.067;
 
 /// A level's action-value function.
 #[derive(Debug, Clone)]
-pub struct Critic {
+pub struct CriticNet {
     dims: LevelDims,
     mlp: Mlp,
     horizon: f32,
     q_offset: f32,
 }
 
-impl Critic {
+impl CriticNet {
     /// A freshly initialised critic for a level with `dims` and horizon `horizon` (H), with
     /// hidden layers of the given widths.
     ///
@@ -98,7 +98,7 @@ impl Critic {
     }
 
     /// Forward pass on a batch; leaves `Q` in `ws.output()` and `dQ/dx` for
-    /// [`Critic::backward_batch`] in `ws`.
+    /// [`CriticNet::backward_batch`] in `ws`.
     ///
     /// The slope is `-H s (1 - s)` with `s = sigmoid(x + q_offset)`. The reference computes it
     /// from the output, as `Q (1 + Q / H)` (TensorFlow's `y (1 - y)`); in f32 `s` rounds to 1
@@ -219,7 +219,12 @@ mod tests {
     };
 
     /// Fills the input of `ws` with random `(s, g, a)`; returns it (`7 x n`).
-    fn random_input(critic: &Critic, ws: &mut MlpWorkspace, rng: &mut Rng, scale: f32) -> Vec<f32> {
+    fn random_input(
+        critic: &CriticNet,
+        ws: &mut MlpWorkspace,
+        rng: &mut Rng,
+        scale: f32,
+    ) -> Vec<f32> {
         let n = ws.batch();
         let states = uniform_vec(rng, DIMS.state * n, scale);
         let goals = uniform_vec(rng, DIMS.goal * n, scale);
@@ -238,7 +243,7 @@ mod tests {
     fn backward_matches_finite_differences(exact_slope: bool) {
         let mut rng = Rng::seed_from(21);
         let horizon = 10.0;
-        let mut critic = Critic::new(DIMS, horizon, &[8, 6], &mut rng);
+        let mut critic = CriticNet::new(DIMS, horizon, &[8, 6], &mut rng);
         // Weights far from the small initial output layer, and an output bias that cancels the
         // offset, so that the sigmoid is far from linear.
         let q_offset = critic.q_offset();
@@ -286,7 +291,7 @@ mod tests {
     fn the_gradient_survives_where_the_output_rounds_to_minus_h() {
         let mut rng = Rng::seed_from(23);
         let horizon = 20.0;
-        let mut critic = Critic::new(DIMS, horizon, &[8, 6], &mut rng);
+        let mut critic = CriticNet::new(DIMS, horizon, &[8, 6], &mut rng);
         // An output bias that puts x + q_offset at about 25 (30 and 40 below): sigmoid rounds to
         // 1 in f32, as in a critic that rates everything at -H.
         let n = 16;
@@ -345,7 +350,7 @@ mod tests {
         let mut rng = Rng::seed_from(22);
         let n = 256;
         for horizon in [5.0, 10.0, 25.0] {
-            let mut critic = Critic::new(DIMS, horizon, &[64, 64, 64], &mut rng);
+            let mut critic = CriticNet::new(DIMS, horizon, &[64, 64, 64], &mut rng);
             assert!((critic.q_offset() + (horizon / INITIAL_Q - 1.0).ln()).abs() < 1e-5);
             let mut ws = MlpWorkspace::new(critic.mlp(), n);
             random_input(&critic, &mut ws, &mut rng, 1.0);

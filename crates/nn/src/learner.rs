@@ -1,10 +1,10 @@
 //! One HAC level's learner: actor, critic, their optimisers, optional target networks, and the
-//! DDPG-style update of HAC.md ("Learning, per level").
+//! DDPG-style update of docs/ALGORITHM.md ("Learning, per level").
 
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
-use crate::{Actor, Adam, Critic, MlpGrads, MlpWorkspace, NnError};
+use crate::{ActorNet, Adam, CriticNet, MlpGrads, MlpWorkspace, NnError};
 
 /// Value of the `format` metadata entry of a learner checkpoint.
 const FORMAT: &str = "hac-nn/level-learner";
@@ -29,10 +29,10 @@ pub struct LearnerConfig {
     /// Polyak rate of target networks; `None` (the reference's setting) bootstraps from the
     /// online networks.
     pub target_tau: Option<f32>,
-    /// Weight of the mean square of the actor's pre-`tanh` outputs in its loss; 0 (HAC.md's
+    /// Weight of the mean square of the actor's pre-`tanh` outputs in its loss; 0 (the paper's
     /// loss) leaves it out.
     pub actor_preactivation_l2: f32,
-    /// The critic's slope from its pre-sigmoid output (see [`Critic`]); `false` is the
+    /// The critic's slope from its pre-sigmoid output (see [`CriticNet`]); `false` is the
     /// reference's rounding.
     pub exact_critic_slope: bool,
 }
@@ -111,8 +111,8 @@ pub struct LearnerBackup {
 /// Slowly-moving copies of actor and critic that the target `y` bootstraps from.
 #[derive(Debug, Clone)]
 struct Targets {
-    actor: Actor,
-    critic: Critic,
+    actor: ActorNet,
+    critic: CriticNet,
     tau: f32,
 }
 
@@ -156,8 +156,8 @@ impl<'a> Fields<'a> {
 #[derive(Debug, Clone)]
 pub struct LevelLearner {
     config: LearnerConfig,
-    actor: Actor,
-    critic: Critic,
+    actor: ActorNet,
+    critic: CriticNet,
     actor_opt: Adam,
     critic_opt: Adam,
     targets: Option<Targets>,
@@ -176,12 +176,12 @@ impl LevelLearner {
     ///
     /// Panics if the bounds do not match `dims.action`, a width is zero, or `horizon <= 0.067`.
     pub fn new(config: LearnerConfig, rng: &mut Rng) -> Self {
-        let actor = Actor::new(config.dims, &config.action_bounds, &config.hidden, rng);
-        let critic = Critic::new(config.dims, config.horizon, &config.hidden, rng);
+        let actor = ActorNet::new(config.dims, &config.action_bounds, &config.hidden, rng);
+        let critic = CriticNet::new(config.dims, config.horizon, &config.hidden, rng);
         Self::assemble(config, actor, critic)
     }
 
-    fn assemble(config: LearnerConfig, actor: Actor, critic: Critic) -> Self {
+    fn assemble(config: LearnerConfig, actor: ActorNet, critic: CriticNet) -> Self {
         let lens = |m: &crate::Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
         let targets = config.target_tau.map(|tau| Targets {
             actor: actor.clone(),
@@ -210,12 +210,12 @@ impl LevelLearner {
     }
 
     /// The current actor; clone it to hand the policy to a rollout or ship its weights.
-    pub fn actor(&self) -> &Actor {
+    pub fn actor(&self) -> &ActorNet {
         &self.actor
     }
 
     /// The current critic.
-    pub fn critic(&self) -> &Critic {
+    pub fn critic(&self) -> &CriticNet {
         &self.critic
     }
 
@@ -460,7 +460,7 @@ impl LevelLearner {
     }
 
     /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in
-    /// [`Actor::to_safetensors`]), critic (`critic.*`), both optimisers (`actor_adam.*`,
+    /// [`ActorNet::to_safetensors`]), critic (`critic.*`), both optimisers (`actor_adam.*`,
     /// `critic_adam.*`) and, when enabled, the target networks (`target_actor.*`,
     /// `target_critic.*`).
     pub fn to_safetensors(&self) -> Vec<u8> {
@@ -483,15 +483,15 @@ impl LevelLearner {
     pub fn from_safetensors(config: LearnerConfig, bytes: &[u8]) -> Result<Self, NnError> {
         let file = TensorReader::new(bytes)?;
         file.expect_format(FORMAT)?;
-        let actor = Actor::read("actor.", &file)?;
-        let critic = Critic::read("critic.", &file)?;
+        let actor = ActorNet::read("actor.", &file)?;
+        let critic = CriticNet::read("critic.", &file)?;
         check_matches(&config, &actor, &critic)?;
         let mut learner = Self::assemble(config, actor, critic);
         learner.actor_opt.read("actor_adam.", &file)?;
         learner.critic_opt.read("critic_adam.", &file)?;
         if let Some(t) = &mut learner.targets {
-            t.actor = Actor::read("target_actor.", &file)?;
-            t.critic = Critic::read("target_critic.", &file)?;
+            t.actor = ActorNet::read("target_actor.", &file)?;
+            t.critic = CriticNet::read("target_critic.", &file)?;
             check_matches(&learner.config, &t.actor, &t.critic)?;
         }
         Ok(learner)
@@ -499,7 +499,11 @@ impl LevelLearner {
 }
 
 /// Whether networks read from a file are the ones `config` describes.
-fn check_matches(config: &LearnerConfig, actor: &Actor, critic: &Critic) -> Result<(), NnError> {
+fn check_matches(
+    config: &LearnerConfig,
+    actor: &ActorNet,
+    critic: &CriticNet,
+) -> Result<(), NnError> {
     let mismatch = |what: &str, expected: String, found: String| {
         Err(NnError::Mismatch {
             what: what.into(),
@@ -736,7 +740,7 @@ mod tests {
 
     /// A learner whose actor outputs sit at the corner `(2, 1)` of its bounds with pre-activations
     /// of about 40 (tanh rounds to 1), and whose critic reads exactly `-H` everywhere with a slope
-    /// that underflows to 0 (its output bias of 1000 far up the sigmoid): the failure HAC.md's
+    /// that underflows to 0 (its output bias of 1000 far up the sigmoid): the failure the paper's
     /// loss cannot leave.
     fn stuck_at_a_corner(actor_preactivation_l2: f32) -> LevelLearner {
         let mut rng = Rng::seed_from(35);

@@ -3,12 +3,13 @@
 //! - [`mlp`]: [`Mlp`], a dense ReLU network evaluated and differentiated on whole batches (one
 //!   matrix product per layer and pass), with its reusable [`MlpWorkspace`] and [`MlpGrads`].
 //! - [`adam`]: the [`Adam`] optimiser, one moment pair per parameter tensor.
-//! - [`actor`]: [`Actor`], `pi(s, g)` squashed into the level's bounds; cheap single-sample
-//!   [`Actor::act`] for rollouts, safetensors round trip for shipping weights to remote actors.
-//! - [`critic`]: [`Critic`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
+//! - [`actor`]: [`ActorNet`], `pi(s, g)` squashed into the level's bounds; cheap single-sample
+//!   [`ActorNet::act`] for rollouts, safetensors round trip for shipping weights to remote actors.
+//! - [`critic`]: [`CriticNet`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
 //! - [`learner`]: [`LevelLearner`], one level's DDPG-style update (critic step, then actor step
 //!   through the updated critic), optional target networks, whole-state checkpoints.
-//! - [`policy`]: [`Policy`], every level's actor in one self-contained file for use elsewhere.
+//! - [`policy`]: [`ExportedPolicy`], every level's actor in one self-contained file for use
+//!   elsewhere.
 //! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
 //!   the thin-matrix loops; `checkpoint`: safetensors reading and writing.
 //!
@@ -28,12 +29,12 @@ pub mod policy;
 #[cfg(test)]
 mod testing;
 
-pub use actor::Actor;
+pub use actor::ActorNet;
 pub use adam::Adam;
-pub use critic::Critic;
+pub use critic::CriticNet;
 pub use error::NnError;
 pub use learner::{
     Diverged, LearnerBackup, LearnerConfig, LevelLearner, PARAMETER_LIMIT, UpdateStats,
 };
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
-pub use policy::Policy;
+pub use policy::ExportedPolicy;

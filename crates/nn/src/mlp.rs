@@ -52,7 +52,7 @@ impl Dense {
                 }
             }
         } else {
-            // Few inputs (a first layer) or few samples (`Actor::act`): a sum of W's columns.
+            // Few inputs (a first layer) or few samples (`ActorNet::act`): a sum of W's columns.
             for (zc, xc) in z.chunks_exact_mut(out).zip(x.chunks_exact(inp)) {
                 zc.fill(0.0);
                 for (col, &xv) in self.w.chunks_exact(out).zip(xc) {
@@ -334,14 +334,14 @@ impl Mlp {
                     found: shape,
                 });
             }
-            if let Some(prev) = layers.last() {
-                if inp != prev.out {
-                    return Err(NnError::Shape {
-                        name,
-                        expected: format!("[_, {}] (the previous layer's width)", prev.out),
-                        found: shape,
-                    });
-                }
+            if let Some(prev) = layers.last()
+                && inp != prev.out
+            {
+                return Err(NnError::Shape {
+                    name,
+                    expected: format!("[_, {}] (the previous layer's width)", prev.out),
+                    found: shape,
+                });
             }
             let mut layer = Dense::zeros(inp, out);
             let row_major = file.read(&name, &[out, inp])?;
@@ -621,7 +621,7 @@ mod tests {
         check_gradients(&[5, 6, 1], 3, 1..4, 2);
         // Wide input, narrow layers: the transposed-weight paths.
         check_gradients(&[9, 3, 4], 7, 0..9, 3);
-        // One sample, as in `Actor::act`.
+        // One sample, as in `ActorNet::act`.
         check_gradients(&[4, 6, 6, 2], 1, 2..4, 4);
     }
 

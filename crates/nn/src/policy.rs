@@ -1,5 +1,5 @@
-//! [`Policy`]: the greedy policy of every level in one self-contained safetensors file, for use
-//! outside this project (`hac export`).
+//! [`ExportedPolicy`]: the greedy policy of every level in one self-contained safetensors file, for
+//! use outside this project (`hac export`).
 //!
 //! Tensors, all `f32`: for each level `i` (0 acts in the environment, the top level proposes
 //! subgoals for the end goal), `level{i}.layers.{l}.weight` (`[out, in]`, row-major) and
@@ -16,7 +16,7 @@
 use std::collections::BTreeMap;
 
 use crate::checkpoint::{TensorReader, TensorWriter};
-use crate::{Actor, NnError};
+use crate::{ActorNet, NnError};
 
 /// Value of the `format` metadata entry.
 const FORMAT: &str = "hac/policy";
@@ -25,14 +25,14 @@ pub const POLICY_FORMAT_VERSION: u32 = 1;
 
 /// Every level's actor, level 0 first, with descriptive metadata.
 #[derive(Debug, Clone)]
-pub struct Policy {
+pub struct ExportedPolicy {
     /// The actors, level 0 first.
-    pub actors: Vec<Actor>,
+    pub actors: Vec<ActorNet>,
     /// Extra metadata (keys other than the ones this module writes itself).
     pub metadata: BTreeMap<String, String>,
 }
 
-impl Policy {
+impl ExportedPolicy {
     /// The policy file (layout in the module docs).
     pub fn to_safetensors(&self) -> Vec<u8> {
         let mut out = TensorWriter::default();
@@ -61,7 +61,7 @@ impl Policy {
         }
         let levels: usize = file.meta("levels")?;
         let actors = (0..levels)
-            .map(|level| Actor::read(&format!("level{level}."), &file))
+            .map(|level| ActorNet::read(&format!("level{level}."), &file))
             .collect::<Result<_, _>>()?;
         Ok(Self {
             actors,
@@ -79,7 +79,7 @@ mod tests {
     #[test]
     fn a_policy_file_round_trips_and_acts_the_same() {
         let mut rng = Rng::seed_from(5);
-        let low = Actor::new(
+        let low = ActorNet::new(
             LevelDims {
                 state: 3,
                 goal: 2,
@@ -89,7 +89,7 @@ mod tests {
             &[8, 8],
             &mut rng,
         );
-        let high = Actor::new(
+        let high = ActorNet::new(
             LevelDims {
                 state: 3,
                 goal: 1,
@@ -99,7 +99,7 @@ mod tests {
             &[8],
             &mut rng,
         );
-        let policy = Policy {
+        let policy = ExportedPolicy {
             actors: vec![low, high],
             metadata: BTreeMap::from([("env".to_string(), "test".to_string())]),
         };
@@ -112,7 +112,7 @@ mod tests {
         assert_eq!(plain["env"], "test");
         assert_eq!(plain["level1.goal_dim"], "1");
 
-        let mut back = Policy::from_safetensors(&bytes).unwrap();
+        let mut back = ExportedPolicy::from_safetensors(&bytes).unwrap();
         assert_eq!(back.actors.len(), 2);
         assert_eq!(back.metadata["env"], "test");
         for (level, (a, b)) in policy.actors.iter().zip(&mut back.actors).enumerate() {
@@ -125,7 +125,7 @@ mod tests {
             b.act(&state, &goal, &mut y);
             assert_eq!(x, y, "level {level}");
         }
-        let e = Policy::from_safetensors(&policy.actors[0].to_safetensors()).unwrap_err();
+        let e = ExportedPolicy::from_safetensors(&policy.actors[0].to_safetensors()).unwrap_err();
         assert!(e.to_string().contains("format"), "{e}");
     }
 }

@@ -17,6 +17,14 @@ pub enum WireError {
         len: usize,
         limit: usize,
     },
+    /// A string with a control character (a newline, an escape, ...), which would let a client
+    /// forge lines in the learner's log or the operator's terminal.
+    #[error("{field} has a control character (U+{code:04X}) at byte {at}")]
+    ControlCharacter {
+        field: Cow<'static, str>,
+        code: u32,
+        at: usize,
+    },
     /// A repeated field with more entries than its limit.
     #[error("{field} has {count} entries, above the limit of {limit}")]
     TooMany {
@@ -86,6 +94,23 @@ impl WireError {
     pub fn zero(field: &'static str) -> Self {
         Self::Zero {
             field: Cow::Borrowed(field),
+        }
+    }
+
+    /// The same refusal of a string, named `field` (for an element of a repeated field).
+    pub fn in_field(self, field: String) -> Self {
+        match self {
+            Self::TooLong { len, limit, .. } => Self::TooLong {
+                field: Cow::Owned(field),
+                len,
+                limit,
+            },
+            Self::ControlCharacter { code, at, .. } => Self::ControlCharacter {
+                field: Cow::Owned(field),
+                code,
+                at,
+            },
+            other => other,
         }
     }
 }

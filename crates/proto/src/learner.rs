@@ -133,12 +133,8 @@ impl TryFrom<pb::RegisterRequest> for Registration {
             });
         }
         for (index, transport) in msg.transports.iter().enumerate() {
-            if transport.len() > MAX_TRANSPORT_NAME_BYTES {
-                return Err(WireError::TooLong {
-                    field: Cow::Owned(format!("register_request.transports[{index}]")),
-                    len: transport.len(),
-                    limit: MAX_TRANSPORT_NAME_BYTES,
-                });
+            if let Err(e) = check_len("", transport, MAX_TRANSPORT_NAME_BYTES) {
+                return Err(e.in_field(format!("register_request.transports[{index}]")));
             }
         }
         Ok(Self {

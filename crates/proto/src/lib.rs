@@ -11,7 +11,12 @@
 //!   and their borrowed form [`IngestRef`], which the learner ingests.
 //! - `packed`: the shared-memory form of ingest messages and weights ([`pack_ingest`],
 //!   [`unpack_ingest`] reading a batch in place, [`pack_weights`], [`unpack_weights`]).
-//! - `weights`: [`WeightsSnapshot`] and the [`WeightsWatch`] request.
+//! - `weights`: [`WeightsSnapshot`], the [`WeightsWatch`] request, and [`BestWeights`] (the
+//!   snapshot behind a run's best test round).
+//! - `published`: [`Published`], the latest weights as a learner publishes them and a link
+//!   delivers them to an actor.
+//! - `reject`: [`RejectReason`], why an input was refused (status counts, metrics, and the
+//!   `hac-reject-reason` metadata).
 //! - `learner`: [`Registration`], [`Admission`] (with the per-level dimensions and the
 //!   [`ShmOffer`]), [`Evaluation`].
 //! - `limits`: the length limits on the strings of every request message
@@ -29,6 +34,8 @@ mod ingest;
 mod learner;
 mod limits;
 mod packed;
+mod published;
+mod reject;
 mod weights;
 
 pub use batch::{
@@ -46,7 +53,9 @@ pub use packed::{
     PACKED_ALIGNMENT, max_packed_ingest_len, pack_ingest, pack_weights, packed_ingest_identity,
     packed_ingest_len, packed_weights_len, unpack_ingest, unpack_weights,
 };
-pub use weights::{WeightsSnapshot, WeightsWatch};
+pub use published::Published;
+pub use reject::RejectReason;
+pub use weights::{BestWeights, WeightsSnapshot, WeightsWatch};
 
 /// The generated `hac.v1` package: messages, `learner_client`/`learner_server`,
 /// `status_client`/`status_server`.

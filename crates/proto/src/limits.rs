@@ -21,8 +21,8 @@ pub const MAX_TRANSPORT_NAME_BYTES: usize = 32;
 /// Bytes of an id echoed in an error or a log line before [`Clipped`] cuts it.
 pub const ECHO_BYTES: usize = 64;
 
-/// Refuses an empty actor id or one above [`MAX_ACTOR_ID_BYTES`]; `field` names it in the error
-/// (`message.actor_id`).
+/// Refuses an empty actor id, one above [`MAX_ACTOR_ID_BYTES`], or one with a control character;
+/// `field` names it in the error (`message.actor_id`).
 pub fn check_actor_id(field: &'static str, actor_id: &str) -> Result<(), WireError> {
     if actor_id.is_empty() {
         return Err(WireError::missing(field));
@@ -30,7 +30,8 @@ pub fn check_actor_id(field: &'static str, actor_id: &str) -> Result<(), WireErr
     check_len(field, actor_id, MAX_ACTOR_ID_BYTES)
 }
 
-/// Refuses `value` if it is longer than `limit` bytes.
+/// Refuses `value` if it is longer than `limit` bytes or holds a control character (checked only
+/// once the length is: at most `limit` characters are scanned).
 pub(crate) fn check_len(field: &'static str, value: &str, limit: usize) -> Result<(), WireError> {
     if value.len() > limit {
         return Err(WireError::TooLong {
@@ -39,7 +40,14 @@ pub(crate) fn check_len(field: &'static str, value: &str, limit: usize) -> Resul
             limit,
         });
     }
-    Ok(())
+    match value.char_indices().find(|(_, c)| c.is_control()) {
+        Some((at, c)) => Err(WireError::ControlCharacter {
+            field: Cow::Borrowed(field),
+            code: c as u32,
+            at,
+        }),
+        None => Ok(()),
+    }
 }
 
 /// An id as echoed in errors and logs: whole up to [`ECHO_BYTES`], else its first
@@ -88,6 +96,23 @@ mod tests {
         );
         let err = check_actor_id("x.actor_id", "").unwrap_err();
         assert_eq!(err.to_string(), "missing field x.actor_id");
+    }
+
+    #[test]
+    fn ids_with_control_characters_are_refused() {
+        // A newline would forge a line in the learner's log; an escape, the operator's terminal.
+        for (id, code, at) in [
+            ("a\nb", 0x0A, 1),
+            ("\u{1b}[2J", 0x1B, 0),
+            ("ok\u{7f}", 0x7F, 2),
+        ] {
+            let err = check_actor_id("x.actor_id", id).unwrap_err();
+            assert_eq!(
+                err.to_string(),
+                format!("x.actor_id has a control character (U+{code:04X}) at byte {at}")
+            );
+        }
+        assert!(check_actor_id("x.actor_id", "pod-7.élan").is_ok());
     }
 
     #[test]

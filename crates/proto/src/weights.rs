@@ -1,6 +1,7 @@
 //! Weights publishing: `pb::Weights` <-> [`WeightsSnapshot`], and the watch request.
 
 use std::borrow::Cow;
+use std::sync::Arc;
 
 use crate::{WireError, check_actor_id, pb};
 
@@ -109,6 +110,18 @@ impl From<WeightsWatch> for pb::WatchWeightsRequest {
             min_version: watch.min_version,
         }
     }
+}
+
+/// The weights of the best test round so far.
+#[derive(Debug, Clone)]
+pub struct BestWeights {
+    /// 1-based, as on the learning curve.
+    pub round: usize,
+    /// Training episodes behind the weights (the curve's x).
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub success_rate: f32,
+    pub snapshot: Arc<WeightsSnapshot>,
 }
 
 #[cfg(test)]

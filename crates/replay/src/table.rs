@@ -359,7 +359,7 @@ mod tests {
             reward: -x - 0.5,
             next_state: [x + 1.0, x + 1.25, x + 1.5],
             goal: [2.0 * x, 2.0 * x + 0.5],
-            terminal: id % 3 == 0,
+            terminal: id.is_multiple_of(3),
         }
     }
 

@@ -177,10 +177,10 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
     if config.replay_shards == 0 {
         bail!("invalid value for `replay_shards`: must be at least 1");
     }
-    if let Some(s) = config.stop_at {
-        if !(0.0..=1.0).contains(&s) {
-            bail!("invalid value for `stop_at`: {s} (must be a success rate in [0, 1])");
-        }
+    if let Some(s) = config.stop_at
+        && !(0.0..=1.0).contains(&s)
+    {
+        bail!("invalid value for `stop_at`: {s} (must be a success rate in [0, 1])");
     }
     Ok(config)
 }
@@ -387,7 +387,7 @@ mod tests {
         assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), long);
         assert!(!default.to_toml().contains("max_actions"));
 
-        // Pendulum: the flat agent's H is the budget; ENVS.md's H for 3 levels stays.
+        // Pendulum: the flat agent's H is the budget; the task's H for 3 levels stays.
         assert_eq!(
             run("pendulum", 1, Some(500), None).unwrap().agent.horizon,
             500

@@ -436,10 +436,11 @@ fn typed(value: &str) -> toml::Value {
     if let Ok(i) = value.parse::<i64>() {
         return toml::Value::Integer(i);
     }
-    if value.contains(['.', 'e']) && value.chars().all(|c| "0123456789.e-+".contains(c)) {
-        if let Ok(f) = value.parse::<f64>() {
-            return toml::Value::Float(f);
-        }
+    if value.contains(['.', 'e'])
+        && value.chars().all(|c| "0123456789.e-+".contains(c))
+        && let Ok(f) = value.parse::<f64>()
+    {
+        return toml::Value::Float(f);
     }
     match value {
         "true" => toml::Value::Boolean(true),
@@ -517,36 +518,35 @@ fn exit_naming_variable(e: clap::Error, argv: &[OsString], daemons: &[Mount<'_>]
     if matches!(
         e.kind(),
         ErrorKind::InvalidValue | ErrorKind::ValueValidation
-    ) {
-        if let Some(ContextValue::String(shown)) = e.get(ContextKind::InvalidArg) {
-            let long = shown
-                .trim_start_matches("--")
-                .split([' ', '='])
-                .next()
-                .unwrap_or_default();
-            let on_command_line = argv.iter().any(|a| {
-                let a = a.to_string_lossy();
-                a == format!("--{long}") || a.starts_with(&format!("--{long}="))
-            });
-            let from_env = daemons.iter().find_map(|m| {
-                let cmd = m.section.command()?;
-                let arg = cmd.get_arguments().find(|a| a.get_long() == Some(long))?;
-                let var = arg.get_env()?;
-                std::env::var_os(var)?;
-                Some((
-                    var.to_string_lossy().into_owned(),
-                    key_of(arg),
-                    m.section.name,
-                ))
-            });
-            if let (false, Some((var, key, section))) = (on_command_line, from_env) {
-                let key = key.map_or(String::new(), |k| format!(", `[{section}] {k}`"));
-                eprintln!(
-                    "error: invalid value in environment variable {var} (flag `--{long}`{key}): {}",
-                    first_line(&e)
-                );
-                std::process::exit(2);
-            }
+    ) && let Some(ContextValue::String(shown)) = e.get(ContextKind::InvalidArg)
+    {
+        let long = shown
+            .trim_start_matches("--")
+            .split([' ', '='])
+            .next()
+            .unwrap_or_default();
+        let on_command_line = argv.iter().any(|a| {
+            let a = a.to_string_lossy();
+            a == format!("--{long}") || a.starts_with(&format!("--{long}="))
+        });
+        let from_env = daemons.iter().find_map(|m| {
+            let cmd = m.section.command()?;
+            let arg = cmd.get_arguments().find(|a| a.get_long() == Some(long))?;
+            let var = arg.get_env()?;
+            std::env::var_os(var)?;
+            Some((
+                var.to_string_lossy().into_owned(),
+                key_of(arg),
+                m.section.name,
+            ))
+        });
+        if let (false, Some((var, key, section))) = (on_command_line, from_env) {
+            let key = key.map_or(String::new(), |k| format!(", `[{section}] {k}`"));
+            eprintln!(
+                "error: invalid value in environment variable {var} (flag `--{long}`{key}): {}",
+                first_line(&e)
+            );
+            std::process::exit(2);
         }
     }
     e.exit()

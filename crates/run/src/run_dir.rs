@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use hac_agent::{Agent, RoundReport};
-use hac_learner::BestWeights;
+use hac_proto::BestWeights;
 use hac_tabular::TabularAgent;
 use serde::{Deserialize, Serialize};
 

@@ -9,7 +9,8 @@
 //!   table would still exceed [`TabularConfig::max_table_entries`], `r_i` shrinks until it fits.
 //! - Values start at `-H` by default (see [`InitialQ`] for why not at 0 like the critic).
 //! - Update: `Q += alpha * (y - Q)` with `y = r + gamma * (1 - terminal) * max_a' Q(s', g, a')`
-//!   (the max over the choices allowed at `s'`), clipped to `[-H, 0]` as in HAC.md.
+//!   (the max over the choices allowed at `s'`), clipped to `[-H, 0]` like the critic
+//!   (docs/ALGORITHM.md).
 //!
 //! Transitions whose state, goal or action has no place in the tables (a wall cell, a subgoal
 //! beyond the radius) are skipped and counted: they describe choices the level can never make.
@@ -297,7 +298,7 @@ impl ActionSpace {
 
 /// What the agent and its exploration share: the state space and every level's action space.
 #[derive(Debug)]
-struct Shared {
+struct Spaces {
     grid: Grid,
     levels: Vec<ActionSpace>,
 }
@@ -327,7 +328,7 @@ struct LevelCounters {
 /// [`TransitionSink`], the Q-learning update of every transition it receives.
 #[derive(Debug)]
 pub struct TabularAgent {
-    shared: Arc<Shared>,
+    shared: Arc<Spaces>,
     /// Per level, `Q[((s * cells) + g) * slots + a]`.
     pub(crate) tables: Vec<Vec<f32>>,
     /// Per level, `best[s * cells + g]`: the largest `Q(s, g, a)` over the slots allowed at `s`,
@@ -406,7 +407,7 @@ impl TabularAgent {
         let levels_len = levels.len();
         let counters = vec![LevelCounters::default(); levels_len];
         let mut agent = Self {
-            shared: Arc::new(Shared {
+            shared: Arc::new(Spaces {
                 grid: grid.clone(),
                 levels,
             }),
@@ -722,7 +723,7 @@ impl TransitionSink for TabularAgent {
 /// goals uniform.
 #[derive(Debug)]
 pub struct TabularExploration {
-    shared: Arc<Shared>,
+    shared: Arc<Spaces>,
     rng: Rng,
     random_action_prob: f32,
     subgoal_test_prob: f32,

@@ -5,7 +5,7 @@ use hac_core::{AgentConfig, Bounds, Env, EnvSpec, Mode, Rng, StateError, horizon
 
 use crate::grid::{Cell, Grid, GridError, MOVES};
 
-/// The discrete grid world of the paper's discrete tasks (ENVS.md, four-rooms).
+/// The discrete grid world of the paper's discrete tasks (docs/ENVIRONMENTS.md, four-rooms).
 ///
 /// - State, end goal and subgoal: the agent's cell `[row, col]`; both projections are the
 ///   identity, and the thresholds of 0.5 make "reached" mean "in the same cell".
@@ -123,12 +123,12 @@ impl Env for FourRooms {
         self.spec.subgoal_bounds = bounds;
     }
 
-    /// HAC.md's values where they apply to a tabular learner (lambda 0.3, 20% random actions,
-    /// 3 replay goals, gamma 0.98, the test schedule) and H covering the budget. The network
-    /// fields keep the paper's values so that a function-approximation agent can run here too;
-    /// the tabular learner ignores them.
+    /// The paper's reference values where they apply to a tabular learner (lambda 0.3, 20% random
+    /// actions, 3 replay goals, gamma 0.98, the test schedule) and H covering the budget. The
+    /// network fields keep the paper's values so that a function-approximation agent can run here
+    /// too; the tabular learner ignores them.
     fn default_config(&self, levels: usize) -> AgentConfig {
-        // HAC.md's reference settings; the network fields are unused by the tabular learner.
+        // The paper's reference settings; the network fields are unused by the tabular learner.
         AgentConfig::reference(levels, horizon_covering(self.spec.max_actions, levels))
     }
 

@@ -3,7 +3,8 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use hac_learner::{IngestError, Learner, Published, RegisterError, RoomError};
+use hac_learner::{IngestError, Learner, RegisterError, RoomError};
+use hac_proto::Published;
 use hac_proto::{Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot};
 
 use crate::{ActorLink, EvaluationOf, LinkError};

@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use hac_learner::Published;
+use hac_proto::Published;
 use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
 
 pub use in_process::InProcess;

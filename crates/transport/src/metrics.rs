@@ -407,7 +407,7 @@ pub fn learner_metrics(learner: &Learner) -> String {
         let n = status.actors.iter().filter(|a| a.role == role).count();
         m.sample("hac_learner_actors", &[("role", role_name(role))], n as f64);
     }
-    type ActorField = fn(&hac_learner::ActorStatus) -> f64;
+    type ActorField = fn(&hac_learner::RegisteredActor) -> f64;
     let actor_families: [(&str, Kind, &str, ActorField); 6] = [
         (
             "hac_learner_actor_episodes_total",

@@ -8,8 +8,8 @@
 use std::fmt::{self, Write as _};
 use std::time::{Duration, Instant};
 
-use hac_learner::RejectReason;
 use hac_proto::Clipped;
+use hac_proto::RejectReason;
 use parking_lot::Mutex;
 
 /// How often the counts of refusals not logged are summarized.

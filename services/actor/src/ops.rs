@@ -9,8 +9,8 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use hac_learner::{Published, RATES_WINDOW, RateWindow};
-use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot, pb};
+use hac_core::rates::{RATES_WINDOW, RateWindow};
+use hac_proto::{Admission, IngestItem, Published, Registration, WeightsSnapshot, pb};
 use hac_run::security::{ClientTlsArgs, ServerTlsArgs, TokenArgs};
 use hac_transport::grpc::{
     ActorNodeStatus, Health, STATUS_SERVICE, ServerSecurity, StatusSource, serve_status,

@@ -15,8 +15,8 @@
 //! the report compares the resident size after the first minute with the last sample.
 
 use std::io::{BufRead as _, BufReader};
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -70,38 +70,41 @@ pub struct ConnectionsReport {
     pub samples: Vec<Sample>,
 }
 
-/// The learner child; killed if still running when dropped (a failed bench leaves nothing).
-struct LearnerProcess {
+/// A `hac learner` child on an ephemeral loopback port; killed if still running when dropped
+/// (a failed bench leaves nothing), its run directory removed then unless kept.
+pub(crate) struct LearnerProcess {
     child: Child,
     dir: PathBuf,
+    keep: bool,
 }
 
 impl LearnerProcess {
-    fn spawn() -> Result<(Self, String)> {
-        let dir =
-            std::env::temp_dir().join(format!("hac-bench-connections-{}", std::process::id()));
+    /// Starts `hac learner --listen 127.0.0.1:0 --overwrite --out <dir> <args>` with its stderr
+    /// to `stderr`; returns it with its URL.
+    pub(crate) fn spawn(
+        args: &[String],
+        dir: &Path,
+        keep: bool,
+        stderr: Stdio,
+    ) -> Result<(Self, String)> {
         let exe = std::env::current_exe().context("locating the hac binary")?;
         let mut child = Command::new(exe)
-            .args([
-                "learner",
-                "--env",
-                "pendulum",
-                "--levels",
-                "2",
-                "--listen",
-                "127.0.0.1:0",
-            ])
-            .args(["--episodes", "1000000000", "--overwrite", "--out"])
-            .arg(&dir)
+            .args(["learner", "--listen", "127.0.0.1:0", "--overwrite", "--out"])
+            .arg(dir)
+            .args(args)
             // The bench's learner is fully specified by these flags.
             .env_remove("HAC_CONFIG")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(stderr)
             .spawn()
             .context("starting `hac learner`")?;
         let stdout = child.stdout.take().context("the learner's stdout")?;
-        let mut process = Self { child, dir };
+        let mut process = Self {
+            child,
+            dir: dir.to_path_buf(),
+            keep,
+        };
         let mut line = String::new();
         BufReader::new(stdout)
             .read_line(&mut line)
@@ -113,12 +116,21 @@ impl LearnerProcess {
         Ok((process, format!("http://{addr}")))
     }
 
-    fn pid(&self) -> u32 {
+    pub(crate) fn pid(&self) -> u32 {
         self.child.id()
     }
 
-    /// SIGTERM (through kill(1): the workspace has no unsafe code for libc), then a bounded wait.
-    fn stop(mut self) -> Result<()> {
+    /// Its exit status, if it has exited.
+    pub(crate) fn try_wait(&mut self) -> Result<Option<ExitStatus>> {
+        Ok(self.child.try_wait()?)
+    }
+
+    /// SIGTERM (through kill(1): the workspace has no unsafe code for libc), then a bounded
+    /// wait; the exit status.
+    pub(crate) fn terminate(&mut self) -> Result<ExitStatus> {
+        if let Some(status) = self.child.try_wait()? {
+            return Ok(status);
+        }
         let sent = Command::new("kill")
             .args(["-TERM", &self.pid().to_string()])
             .status()
@@ -129,14 +141,20 @@ impl LearnerProcess {
         let deadline = Instant::now() + Duration::from_secs(30);
         while Instant::now() < deadline {
             if let Some(status) = self.child.try_wait()? {
-                if !status.success() {
-                    bail!("the learner exited with {status}");
-                }
-                return Ok(());
+                return Ok(status);
             }
             std::thread::sleep(Duration::from_millis(100));
         }
         bail!("the learner did not stop within 30 s of SIGTERM")
+    }
+
+    /// [`terminate`](Self::terminate), which must end in a clean exit.
+    fn stop(mut self) -> Result<()> {
+        let status = self.terminate()?;
+        if !status.success() {
+            bail!("the learner exited with {status}");
+        }
+        Ok(())
     }
 }
 
@@ -146,12 +164,14 @@ impl Drop for LearnerProcess {
             let _ = self.child.kill();
             let _ = self.child.wait();
         }
-        let _ = std::fs::remove_dir_all(&self.dir);
+        if !self.keep {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
     }
 }
 
 /// VmRSS, VmHWM (KiB) and Threads of a process.
-fn read_status(pid: u32) -> Result<(u64, u64, u64)> {
+pub(crate) fn read_status(pid: u32) -> Result<(u64, u64, u64)> {
     let text = std::fs::read_to_string(format!("/proc/{pid}/status"))
         .with_context(|| format!("reading /proc/{pid}/status"))?;
     let field = |name: &str| -> Result<u64> {
@@ -249,7 +269,17 @@ pub fn run(bench: &ConnectionsBench) -> Result<ConnectionsReport> {
     }
     let dims = hac_envs::make("pendulum")?.spec().level_dims(0, 2);
     let message = encode_batch(0, 1, &level0_batch(dims, bench.batch));
-    let (learner, url) = LearnerProcess::spawn()?;
+    let dir = std::env::temp_dir().join(format!("hac-bench-connections-{}", std::process::id()));
+    let args = [
+        "--env",
+        "pendulum",
+        "--levels",
+        "2",
+        "--episodes",
+        "1000000000",
+    ]
+    .map(String::from);
+    let (learner, url) = LearnerProcess::spawn(&args, &dir, false, Stdio::null())?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

@@ -1,5 +1,5 @@
 //! `hac export`: a trained run's greedy policy as one self-contained safetensors file
-//! ([`hac_nn::Policy`]; layout and metadata in docs/CHECKPOINTS.md).
+//! ([`hac_nn::ExportedPolicy`]; layout and metadata in docs/CHECKPOINTS.md).
 //!
 //! The policy comes from the run's newest valid checkpoint (`<run>/checkpoints/`, written by the
 //! learner daemon; a finished run's last checkpoint holds its final weights), or `--checkpoint
@@ -15,7 +15,7 @@ use hac_actor::SnapshotPolicy;
 use hac_agent::{Agent, RunConfig};
 use hac_core::EnvSpec;
 use hac_learner::LearnerCheckpoint;
-use hac_nn::{Actor, Policy};
+use hac_nn::{ActorNet, ExportedPolicy};
 use hac_run::checkpoints::CheckpointStore;
 use hac_run::run_dir;
 
@@ -39,7 +39,7 @@ pub struct ExportArgs {
 /// Where the policy came from.
 struct Source {
     run: RunConfig,
-    actors: Vec<Actor>,
+    actors: Vec<ActorNet>,
     /// Updates behind each level's actor, where known (not for the best weights).
     updates: Option<Vec<u64>>,
     weights_version: Option<u64>,
@@ -167,7 +167,7 @@ fn neural_run(args: &ExportArgs) -> Result<RunConfig> {
 }
 
 /// The policy file's contents: every level's actor and the metadata to run it elsewhere.
-fn policy(source: &Source) -> Result<Policy> {
+fn policy(source: &Source) -> Result<ExportedPolicy> {
     let run = &source.run;
     let env = run.make_env()?;
     let spec = env.spec();
@@ -212,7 +212,7 @@ fn policy(source: &Source) -> Result<Policy> {
             put(&format!("level{level}.updates"), updates[level].to_string());
         }
     }
-    Ok(Policy {
+    Ok(ExportedPolicy {
         actors: source.actors.clone(),
         metadata: meta,
     })

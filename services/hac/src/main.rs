@@ -21,6 +21,7 @@
 mod bench;
 mod bench_connections;
 mod bench_grpc;
+mod bench_hostile;
 mod bench_shm;
 mod env_cmd;
 mod experiment;
@@ -168,6 +169,59 @@ enum BenchCommand {
         #[arg(long)]
         json: bool,
     },
+    /// A learner under attack, from outside: a `hac learner` process with honest `hac actor`
+    /// trainers, while hostile clients built from the wire contract send poison batches, NaN,
+    /// out-of-box values, wrong levels and shapes, oversized messages and strings, stale and
+    /// unknown identities, sequence gaps, duplicates, garbage bytes to every RPC and mutated
+    /// messages. Tallies every answer against what it must be, checks every published weights
+    /// version for non-finite values and samples the learner's memory; fails if the learner
+    /// crashed, answered wrongly, lost count of a message, published a non-finite weight, or
+    /// (attack) the run missed --stop-at.
+    Hostile(HostileArgs),
+}
+
+/// `hac bench hostile` arguments.
+#[derive(Debug, Args)]
+struct HostileArgs {
+    /// Built-in environment (see `hac env list`).
+    #[arg(long, default_value = "pendulum")]
+    env: String,
+    /// Levels of the hierarchy.
+    #[arg(long, default_value_t = 2)]
+    levels: usize,
+    /// The run's seed (and the hostile clients').
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Attack: the success rate the run must reach while attacked.
+    #[arg(long, default_value_t = 0.9)]
+    stop_at: f64,
+    /// Attack: the run's episode budget.
+    #[arg(long, default_value_t = 1000)]
+    episodes: u64,
+    /// Attack: the longest attack in seconds (it also ends when the run does).
+    #[arg(long, default_value_t = 60.0)]
+    seconds: f64,
+    /// Fuzz instead of attack: send this many hostile inputs in all while honest trainers keep
+    /// the learner training, then measure honest gRPC ingest on the same learner.
+    #[arg(long)]
+    inputs: Option<u64>,
+    /// Hostile clients, each with its own connection and registered trainer identity (attack:
+    /// 0 runs the same without an attack, for comparison).
+    #[arg(long, default_value_t = 1)]
+    clients: usize,
+    /// Honest `hac actor` trainer processes (an attack adds an evaluator).
+    #[arg(long, default_value_t = 2)]
+    trainers: usize,
+    /// Fuzz: seconds of the honest ingest measurement after the inputs (0: none).
+    #[arg(long, default_value_t = 5.0)]
+    throughput_seconds: f64,
+    /// Keep the learner's run directory and every process's log here (default: a temporary
+    /// directory, removed).
+    #[arg(long)]
+    dir: Option<PathBuf>,
+    /// Print one JSON object (with the memory samples) instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -340,11 +394,11 @@ fn main() {
         Command::Experiment(args) => args.config.clone(),
         _ => None,
     };
-    if let Some(path) = file {
-        if let Err(e) = ConfigFile::load(&path).and_then(|f| f.validate(&[&learner, &actor])) {
-            eprintln!("error: {}", error_chain(&e));
-            std::process::exit(1);
-        }
+    if let Some(path) = file
+        && let Err(e) = ConfigFile::load(&path).and_then(|f| f.validate(&[&learner, &actor]))
+    {
+        eprintln!("error: {}", error_chain(&e));
+        std::process::exit(1);
     }
     let result = match cli.command {
         Command::Train(args) => train(args),
@@ -409,6 +463,22 @@ fn main() {
             sample_every: Duration::from_secs(sample_every),
             json,
         }),
+        Command::Bench(BenchCommand::Hostile(args)) => {
+            bench_hostile::run_and_print(&bench_hostile::HostileBench {
+                env: args.env,
+                levels: args.levels,
+                seed: args.seed,
+                stop_at: args.stop_at,
+                episodes: args.episodes,
+                seconds: args.seconds,
+                inputs: args.inputs,
+                clients: args.clients,
+                trainers: args.trainers,
+                throughput_seconds: args.throughput_seconds,
+                dir: args.dir,
+                json: args.json,
+            })
+        }
         Command::Health(args) => health::run(&args),
         Command::Env(EnvCommand::List) => env_cmd::list(),
         Command::Env(EnvCommand::Describe {

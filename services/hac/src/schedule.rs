@@ -1,6 +1,6 @@
-//! The reference schedule (HAC.md), written once for any learner: blocks of
-//! `exploration_episodes` training episodes, each followed by a round of `test_episodes` greedy
-//! test episodes whose success rate is one point of the learning curve.
+//! The reference schedule (docs/ALGORITHM.md, "The schedule"), written once for any learner:
+//! blocks of `exploration_episodes` training episodes, each followed by a round of `test_episodes`
+//! greedy test episodes whose success rate is one point of the learning curve.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -134,10 +134,10 @@ mod tests {
     impl Learner for Scripted {
         fn rollout(&mut self) -> usize {
             self.rollouts += 1;
-            if let Some((n, flag)) = self.interrupt_after {
-                if self.rollouts == n {
-                    flag.store(true, Ordering::Relaxed);
-                }
+            if let Some((n, flag)) = self.interrupt_after
+                && self.rollouts == n
+            {
+                flag.store(true, Ordering::Relaxed);
             }
             7
         }

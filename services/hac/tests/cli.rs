@@ -125,7 +125,7 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     for (i, line) in lines[..3].iter().enumerate() {
         let e: serde_json::Value = serde_json::from_str(line).unwrap();
         assert_eq!(e["episode"], i);
-        // Mountain car's end goal is fixed at [0.48, 0.04] (ENVS.md); the state is [x, v].
+        // Mountain car's end goal is fixed at [0.48, 0.04]; the state is [x, v].
         let goal: Vec<f64> = serde_json::from_value(e["end_goal"].clone()).unwrap();
         assert_eq!(goal.len(), 2, "{line}");
         assert!(

@@ -279,7 +279,7 @@ fn the_best_round_is_kept_evaluated_and_exported() {
     for level in 0..2 {
         let best =
             std::fs::read(run.join(format!("weights/best/level{level}.safetensors"))).unwrap();
-        let mut best = hac_nn::Actor::from_safetensors(&best).unwrap();
+        let mut best = hac_nn::ActorNet::from_safetensors(&best).unwrap();
         let exported = read_level(&st, level);
         let dims = best.dims();
         let mut rng = Rng::seed_from(5);

@@ -241,6 +241,7 @@ impl LearnerArgs {
             options.error_buffer_episodes = x;
         }
         options.max_actor_messages_per_second = self.ops.max_actor_messages_per_second;
+        options.validate()?;
         Ok(options)
     }
 

@@ -2,11 +2,11 @@
 //! kinematics, the mass matrix (composite rigid body algorithm) and inverse dynamics (recursive
 //! Newton-Euler), all on fixed-size nalgebra types so that nothing allocates.
 //!
-//! Frames follow the MuJoCo model the reference simulated (ENVS.md): each body sits at an offset
-//! in its parent's frame, turned by a fixed rotation, and its hinge turns it about an axis of its
-//! own frame through its origin. The world frame is the fixed base's, z up.
+//! Frames follow the MuJoCo model the reference simulated (docs/ENVIRONMENTS.md): each body sits
+//! at an offset in its parent's frame, turned by a fixed rotation, and its hinge turns it about an
+//! axis of its own frame through its origin. The world frame is the fixed base's, z up.
 //!
-//! Inertia: ENVS.md copies MuJoCo's `<inertial pos=.. mass=.. diaginertia=..>`, and MuJoCo reads
+//! Inertia: the figures are MuJoCo's `<inertial pos=.. mass=.. diaginertia=..>`, and MuJoCo reads
 //! `diaginertia` as the principal moments about the centre of mass, in an inertial frame at `pos`
 //! whose axes are the body's (the model gives no inertial `quat`). That is how they are used here;
 //! the parallel-axis theorem moves them wherever an algorithm needs them. For the shoulder the
@@ -29,11 +29,12 @@ const SHOULDER_HEIGHT: f64 = 0.089159;
 /// The upper arm's orientation in the shoulder's frame (w, x, y, z), 90 degrees about y.
 #[expect(
     clippy::approx_constant,
-    reason = "ENVS.md's (and the MuJoCo model's) digits, normalised where used"
+    reason = "the MuJoCo model's digits, normalised where used"
 )]
 const UPPER_ARM_QUATERNION: [f64; 4] = [0.707107, 0.0, 0.707107, 0.0];
 
-/// The wrist point of ENVS.md's goal rule in the forearm's frame (the UR5's wrist-1 joint).
+/// The wrist point of the goal rule (docs/ENVIRONMENTS.md) in the forearm's frame (the UR5's
+/// wrist-1 joint).
 ///
 /// The reference writes it as (0.39225, -0.1197, 0) in its own forward kinematics, whose frames
 /// run x along the links (it leaves out the upper arm's quaternion) and which applies the
@@ -59,7 +60,7 @@ struct Body {
     inertia: Matrix3<f64>,
 }
 
-/// The three moving bodies of ENVS.md's ur5-reacher chain under a given gravity.
+/// The three moving bodies of the ur5-reacher chain under a given gravity.
 #[derive(Debug, Clone)]
 pub struct Ur5Arm {
     bodies: [Body; JOINTS],
@@ -111,7 +112,7 @@ impl Pose {
 }
 
 impl Ur5Arm {
-    /// ENVS.md's chain under gravity `gravity` (m/s^2, along -z).
+    /// The chain under gravity `gravity` (m/s^2, along -z).
     pub fn new(gravity: f64) -> Self {
         let hinge = |axis, mass, com, inertia: [f64; 3]| Body {
             offset: Vector3::zeros(),

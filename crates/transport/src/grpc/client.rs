@@ -33,9 +33,9 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use hac_core::Rng;
-use hac_learner::{Published, RejectReason};
 use hac_proto::{
-    Admission, IngestItem, IngestMessage, PreviousIncarnation, Registration, WeightsSnapshot, pb,
+    Admission, IngestItem, IngestMessage, PreviousIncarnation, Published, Registration,
+    RejectReason, WeightsSnapshot, pb,
 };
 use parking_lot::{Condvar, Mutex};
 use prost::Message as _;
@@ -138,7 +138,7 @@ const INGEST_PATH: &str = "/hac.v1.Learner/Ingest";
 /// which stops when the link is dropped.
 #[derive(Debug)]
 pub struct GrpcLink {
-    shared: Arc<Shared>,
+    shared: Arc<LinkState>,
     channel: LinkChannel,
     /// `Some` until drop.
     runtime: Option<Runtime>,
@@ -147,7 +147,7 @@ pub struct GrpcLink {
 }
 
 #[derive(Debug)]
-struct Shared {
+struct LinkState {
     options: GrpcLinkOptions,
     outbox: Mutex<Outbox>,
     /// Signalled on every ack and failure: senders waiting for room, flushes.
@@ -267,7 +267,7 @@ impl GrpcLink {
             let _entered = runtime.enter();
             InterceptedService::new(endpoint.connect_lazy(), BearerToken(options.token.clone()))
         };
-        let shared = Arc::new(Shared {
+        let shared = Arc::new(LinkState {
             jitter: Mutex::new(Rng::seed_from(options.jitter_seed)),
             options,
             outbox: Mutex::default(),
@@ -586,7 +586,7 @@ impl Failure {
 
 /// Backoff, give-up deadline and rate-limited warnings for one kind of call.
 struct Retry<'a> {
-    shared: &'a Shared,
+    shared: &'a LinkState,
     what: &'static str,
     delay: Duration,
     attempts: u64,
@@ -596,7 +596,7 @@ struct Retry<'a> {
 }
 
 impl<'a> Retry<'a> {
-    fn new(shared: &'a Shared, what: &'static str) -> Self {
+    fn new(shared: &'a LinkState, what: &'static str) -> Self {
         Self {
             shared,
             what,
@@ -674,7 +674,7 @@ impl<'a> Retry<'a> {
 }
 
 fn learner_client(
-    shared: &Shared,
+    shared: &LinkState,
     channel: &LinkChannel,
 ) -> pb::learner_client::LearnerClient<LinkChannel> {
     let max = shared.options.max_message_bytes;
@@ -684,7 +684,7 @@ fn learner_client(
 }
 
 async fn register_until_admitted(
-    shared: &Shared,
+    shared: &LinkState,
     channel: &LinkChannel,
     request: pb::RegisterRequest,
 ) -> Result<Admission, LinkError> {
@@ -730,7 +730,11 @@ fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
 /// new generation). The registration names the current incarnation, so the learner answers with
 /// a number above it: messages of the old numbering still in flight on a stream being torn down
 /// are refused as stale, never taken for the new incarnation's.
-async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Result<(), LinkError> {
+async fn reregister(
+    shared: &LinkState,
+    channel: &LinkChannel,
+    failed: u64,
+) -> Result<(), LinkError> {
     let _one_at_a_time = shared.registering.lock().await;
     let (request, digest) = {
         let mut outbox = shared.outbox.lock();
@@ -793,7 +797,7 @@ async fn reregister(shared: &Shared, channel: &LinkChannel, failed: u64) -> Resu
     Ok(())
 }
 
-impl Shared {
+impl LinkState {
     fn fail(&self, error: LinkError) {
         let mut outbox = self.outbox.lock();
         if outbox.failure.is_none() {
@@ -850,7 +854,7 @@ enum StreamEnd {
 
 /// Keeps an ingest stream open while anything waits for an ack; reconnects, re-registers and
 /// resends as the module docs say.
-async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
+async fn ingest_task(shared: Arc<LinkState>, channel: LinkChannel) {
     let mut closed = shared.closed.subscribe();
     let mut retry = Retry::new(&shared, "ingest");
     loop {
@@ -890,7 +894,11 @@ async fn ingest_task(shared: Arc<Shared>, channel: LinkChannel) {
 /// it opened: it sends only messages numbered under it, and checks that under the outbox's lock
 /// each time it takes one, so a registration, its renumbering and the start of the next stream
 /// are one step as far as the learner can tell.
-async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry<'_>) -> StreamEnd {
+async fn ingest_stream(
+    shared: &LinkState,
+    channel: &LinkChannel,
+    retry: &mut Retry<'_>,
+) -> StreamEnd {
     let mut closed = shared.closed.subscribe();
     let opened_under = shared.outbox.lock().generation;
     let max = shared.options.max_message_bytes;
@@ -973,7 +981,7 @@ async fn ingest_stream(shared: &Shared, channel: &LinkChannel, retry: &mut Retry
 /// Keeps a weights stream open and publishes every snapshot it brings. Asks for the learner's
 /// current version each time (`min_version` 0): after a restart, versions start again lower, and
 /// the link takes them as they come.
-async fn weights_task(shared: Arc<Shared>, channel: LinkChannel) {
+async fn weights_task(shared: Arc<LinkState>, channel: LinkChannel) {
     let mut closed = shared.closed.subscribe();
     let mut retry = Retry::new(&shared, "weights");
     let mut client = learner_client(&shared, &channel);

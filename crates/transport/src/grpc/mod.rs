@@ -39,7 +39,7 @@ mod ops;
 mod server;
 mod status;
 
-use hac_learner::RejectReason;
+use hac_proto::RejectReason;
 use tokio::sync::watch;
 use tonic::Status;
 

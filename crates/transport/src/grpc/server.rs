@@ -19,11 +19,12 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use hac_learner::{IngestError, Learner, Published, RegisterError, RejectReason, RoomError};
+use hac_learner::{IngestError, Learner, RegisterError, RoomError};
 use hac_proto::{
     Clipped, ECHO_BYTES, Evaluation, MAX_ACTOR_ID_BYTES, PreviousIncarnation, Registration,
     ShmOffer, WeightsWatch, WireError, check_actor_id, decode_ingest, pb,
 };
+use hac_proto::{Published, RejectReason};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -435,10 +436,10 @@ impl LearnerGrpc {
         };
         // What was stored is acknowledged before the stream ends, so the actor does not resend
         // it (resends are harmless, but not free).
-        if let Some(ack) = pending {
-            if acks.send(Ok(ack)).await.is_err() {
-                return;
-            }
+        if let Some(ack) = pending
+            && acks.send(Ok(ack)).await.is_err()
+        {
+            return;
         }
         if let Some(status) = end {
             let _ = acks.send(Err(status)).await;

@@ -14,10 +14,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use hac_learner::{Published, RejectReason};
 use hac_proto::{
-    Admission, IngestItem, IngestRef, PACKED_ALIGNMENT, Registration, WeightsSnapshot,
-    max_packed_ingest_len, pack_ingest, packed_ingest_len,
+    Admission, IngestItem, IngestRef, PACKED_ALIGNMENT, Published, Registration, RejectReason,
+    WeightsSnapshot, max_packed_ingest_len, pack_ingest, packed_ingest_len,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;

@@ -55,7 +55,7 @@ use std::fmt;
 use std::net::SocketAddr;
 use std::sync::Once;
 
-use hac_learner::RejectReason;
+use hac_proto::RejectReason;
 use iceoryx2::prelude::{
     LogLevel, NodeBuilder, NodeName, ServiceName, SignalHandlingMode, set_log_level_from_env_or,
 };

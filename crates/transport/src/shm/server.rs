@@ -7,7 +7,7 @@
 //! nothing waits it sleeps on the `ingest` event, and every few seconds it removes dead nodes
 //! and the ack services nobody listens to any more, and logs the summary of refusals not logged
 //! one by one (a `RefusalLog`). *Weights* waits for each new snapshot in the
-//! learner's [`Published`](hac_learner::Published) cell and publishes it packed, with history 1.
+//! learner's [`Published`](hac_proto::Published) cell and publishes it packed, with history 1.
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -377,7 +377,7 @@ impl Ingest {
                     self.take(sample.payload());
                     drop(sample);
                     taken += 1;
-                    if taken % ACK_EVERY == 0 {
+                    if taken.is_multiple_of(ACK_EVERY) {
                         self.flush_acks();
                         if last_housekeeping.elapsed() >= HOUSEKEEPING {
                             self.housekeeping();

@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use hac_learner::Published;
+use hac_proto::Published;
 use hac_proto::{WeightsSnapshot, unpack_weights};
 
 use super::{Namespace, ShmError, node};

@@ -187,3 +187,18 @@ pub fn assert_exactly_once(s: &serde_json::Value) {
 
 /// What an actor logs when it sends over shared memory.
 pub const USING_SHM: &str = "sending over shared memory";
+
+/// The variable that opts in to the tests that need a tool outside the Rust toolchain
+/// (kubectl, docker). `.ci/run` installs the tools and sets it.
+pub const TOOLS_VAR: &str = "HAC_TEST_TOOLS";
+
+/// Whether a test that needs `tool` runs. With `HAC_TEST_TOOLS=1` it runs and a missing tool
+/// fails it; otherwise it prints that it skipped and passes, so that `cargo test --workspace`
+/// needs only a Rust toolchain.
+pub fn tools_opted_in(test: &str, tool: &str) -> bool {
+    let on = std::env::var(TOOLS_VAR).is_ok_and(|v| v == "1");
+    if !on {
+        eprintln!("skipped {test}: it needs {tool}; set {TOOLS_VAR}=1 to run it (.ci/run does)");
+    }
+    on
+}

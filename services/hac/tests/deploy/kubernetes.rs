@@ -236,10 +236,11 @@ pub fn check_kubernetes(overlay: &str, objects: &[Value], image_uid: u64) -> Vec
     let mut daemons_seen = BTreeSet::new();
     let mut images = BTreeSet::new();
     let secret = named(objects, "Secret", "hac-token");
-    if let Some(secret) = secret {
-        if secret["data"]["token"].is_null() && secret["stringData"]["token"].is_null() {
-            problems.push(format!("{overlay}: Secret hac-token has no key `token`"));
-        }
+    if let Some(secret) = secret
+        && secret["data"]["token"].is_null()
+        && secret["stringData"]["token"].is_null()
+    {
+        problems.push(format!("{overlay}: Secret hac-token has no key `token`"));
     }
     for workload in objects
         .iter()

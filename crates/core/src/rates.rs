@@ -4,6 +4,9 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+/// The span status rates are averaged over.
+pub const RATES_WINDOW: Duration = Duration::from_secs(10);
+
 /// Rates of a fixed set of monotone counters over (about) the last `window`, sampled lazily:
 /// every read records the totals it is given (at most one sample per tenth of the window) and
 /// compares them with the oldest sample that is not older than needed. Nothing runs between
