@@ -11,6 +11,8 @@ mod common;
 use common::{Processes, all_logs, count, hac, listening_addr, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
+/// The learning run: about 10 s when it learns early, under a minute at 800 episodes.
+const LEARNING_DEADLINE: Duration = Duration::from_secs(240);
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-distributed-test", name)
@@ -29,11 +31,14 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
             "mountain-car",
             "--levels",
             "2",
-            // Embedded runs first succeed after 30-90 episodes, free-running trainers later
-            // (80-100 under load, one run in four still at 0 after 100): 200 leaves margin (8
-            // of 8 runs four at a time on 2 cores had a best round of 0.40-0.75).
+            // Learning mountain-car is bimodal: most runs first succeed after 30-110 episodes,
+            // a few stay at 0 for hundreds (embedded seed 12: 0 until episode 320; free-running
+            // trainers: 1 run in 8 still at 0 after 200, and one CI run). So the run stops at the
+            // first round of 25% and the budget is far beyond it.
             "--episodes",
-            "200",
+            "800",
+            "--stop-at",
+            "0.25",
             "--set",
             "test_episodes=20",
             "--listen",
@@ -61,7 +66,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
 
-    processes.all_succeed(&dir, DEADLINE);
+    processes.all_succeed(&dir, LEARNING_DEADLINE);
 
     for file in [
         "config.toml",
@@ -80,28 +85,25 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     let rows: Vec<&str> = csv.lines().collect();
     assert!(rows[0].starts_with("round,episodes,env_steps,success_rate"));
     assert!(rows.len() >= 2, "at least one evaluation:\n{csv}");
-    let last_episodes: u64 = rows
-        .last()
-        .unwrap()
-        .split(',')
-        .nth(1)
-        .unwrap()
-        .parse()
-        .unwrap();
-    assert!(
-        last_episodes >= 200,
-        "the last evaluation covers the budget:\n{csv}"
-    );
     // Learned from nothing: untrained greedy agents never reach the flag (see the embedded
-    // mountain-car test); the best evaluation must.
-    let best = rows[1..]
+    // mountain-car test); a round must have reached the target and ended the run (the final
+    // round after it evaluates the final weights, which may score less).
+    let (episodes, best) = rows[1..]
         .iter()
-        .map(|r| r.split(',').nth(3).unwrap().parse::<f32>().unwrap())
-        .fold(0.0, f32::max);
-    assert!(best >= 0.1, "best evaluation {best}:\n{csv}");
+        .map(|r| {
+            let r: Vec<&str> = r.split(',').collect();
+            (r[1].parse::<u64>().unwrap(), r[3].parse::<f32>().unwrap())
+        })
+        .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    eprintln!("mountain-car, 3 trainers and an evaluator: {best} after {episodes} episodes");
+    assert!(best >= 0.25, "the target was not reached:\n{csv}");
     let summary = std::fs::read_to_string(out.join("summary.json")).unwrap();
     assert!(summary.contains("\"episodes_ingested\""), "{summary}");
     let learner_log = std::fs::read_to_string(dir.join("learner.log")).unwrap();
+    assert!(
+        learner_log.contains("target success rate reached"),
+        "{learner_log}"
+    );
     assert_eq!(
         learner_log.matches("actor registered").count(),
         4,
