@@ -21,26 +21,9 @@ fn scratch(name: &str) -> PathBuf {
 fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car() {
     let dir = scratch("run");
     let out = dir.join("out");
-    let (learner, url) = learner(
-        &[
-            "--env",
-            "mountain-car",
-            "--levels",
-            "2",
-            // As in the gRPC-only test (distributed.rs): free-running trainers are at the onset
-            // of learning around 100 episodes. At 100, one run in 30 (three test binaries at a
-            // time on 2 cores) never succeeded: its top critic read -H (level 1 mean Q
-            // -19.99996, actor loss 20) from episode 80 on. 200 leaves margin.
-            "--episodes",
-            "200",
-            "--set",
-            "test_episodes=20",
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        &dir,
-        "learner",
-    );
+    let mut args = common::MOUNTAIN_CAR_TO_LEARN.to_vec();
+    args.extend(["--set", "test_episodes=20", "--out", out.to_str().unwrap()]);
+    let (learner, url) = learner(&args, &dir, "learner");
     let mut processes = Processes(vec![("learner".into(), learner)]);
     // The evaluator first: a learner with an evaluator waits for the last evaluation.
     processes.0.push(actor(
@@ -58,30 +41,10 @@ fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car
     processes
         .0
         .push(actor(&url, "grpc-0", &["--transport", "grpc"], &dir));
-    processes.all_succeed(&dir, DEADLINE);
+    processes.all_succeed(&dir, common::LEARNING_DEADLINE);
 
-    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
-    let rows: Vec<&str> = csv.lines().collect();
-    assert!(rows.len() >= 2, "at least one evaluation:\n{csv}");
-    let last_episodes: u64 = rows
-        .last()
-        .unwrap()
-        .split(',')
-        .nth(1)
-        .unwrap()
-        .parse()
-        .unwrap();
-    assert!(
-        last_episodes >= 200,
-        "the last evaluation covers the budget:\n{csv}"
-    );
-    // Learned from nothing (untrained greedy agents never reach the flag): the best evaluation
-    // must, as in the gRPC-only run.
-    let best = rows[1..]
-        .iter()
-        .map(|r| r.split(',').nth(3).unwrap().parse::<f32>().unwrap())
-        .fold(0.0, f32::max);
-    assert!(best >= 0.1, "best evaluation {best}:\n{csv}");
+    let (episodes, best) = common::assert_learned_mountain_car(&out, &dir, "learner");
+    eprintln!("mountain-car over shm and gRPC: {best} after {episodes} episodes");
     let s = summary(&out);
     assert_exactly_once(&s);
     assert!(refused_while_running(&s).is_empty(), "{s}");

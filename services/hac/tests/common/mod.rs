@@ -185,6 +185,51 @@ pub fn assert_exactly_once(s: &serde_json::Value) {
     );
 }
 
+/// The learner flags of the distributed mountain-car learning tests. Learning mountain-car is
+/// bimodal: most runs first succeed after 30-110 episodes, a few stay at 0 for hundreds
+/// (embedded seed 12: 0 until episode 320; free-running trainers: 1 run in 8 still at 0 after
+/// 200 here, and once in CI). So the run stops at its first round of 25 % and the budget is far
+/// beyond it; a run that learns early takes about 10 s.
+pub const MOUNTAIN_CAR_TO_LEARN: [&str; 8] = [
+    "--env",
+    "mountain-car",
+    "--levels",
+    "2",
+    "--episodes",
+    "800",
+    "--stop-at",
+    "0.25",
+];
+
+/// How long a run started with [`MOUNTAIN_CAR_TO_LEARN`] may take: about 10 s when it learns
+/// early, under a minute at 800 episodes on an idle machine.
+pub const LEARNING_DEADLINE: std::time::Duration = std::time::Duration::from_secs(240);
+
+/// Asserts that a run started with [`MOUNTAIN_CAR_TO_LEARN`] learned from nothing (untrained
+/// greedy agents never reach the flag): a round reached the target and ended the run (the final
+/// round after it plays the final weights, which may score less). Returns the best round's
+/// episodes and success rate.
+pub fn assert_learned_mountain_car(out: &Path, logs: &Path, learner: &str) -> (u64, f32) {
+    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert!(rows[0].starts_with("round,episodes,env_steps,success_rate"));
+    assert!(rows.len() >= 2, "at least one evaluation:\n{csv}");
+    let (episodes, best) = rows[1..]
+        .iter()
+        .map(|r| {
+            let r: Vec<&str> = r.split(',').collect();
+            (r[1].parse::<u64>().unwrap(), r[3].parse::<f32>().unwrap())
+        })
+        .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    assert!(best >= 0.25, "the target was not reached:\n{csv}");
+    let learner_log = log(logs, learner);
+    assert!(
+        learner_log.contains("target success rate reached"),
+        "{learner_log}"
+    );
+    (episodes, best)
+}
+
 /// What an actor logs when it sends over shared memory.
 pub const USING_SHM: &str = "sending over shared memory";
 
