@@ -134,7 +134,7 @@ pub fn within_goal(achieved: &[f32], goal: &[f32], threshold: &[f32], angles: &[
 }
 
 /// `diff` wrapped to `[-pi, pi]`.
-fn angle_difference(diff: f32) -> f32 {
+pub(crate) fn angle_difference(diff: f32) -> f32 {
     use std::f32::consts::{PI, TAU};
     if (-PI..=PI).contains(&diff) {
         diff

@@ -1,5 +1,7 @@
 //! HAC core: everything about Hierarchical Actor-Critic that involves no IO and no learning.
 //!
+//! - [`hiro`]: HIRO's goal arithmetic (the paper's baseline): the goal transition, the
+//!   intrinsic reward and the off-policy correction of high-level transitions.
 //! - [`rates`]: [`RateWindow`](rates::RateWindow), per-second rates of counters over a sliding
 //!   window, and [`TokenBucket`](rates::TokenBucket), a message rate limit (status and admission
 //!   of the processes; clocks are passed in).
@@ -16,6 +18,7 @@
 pub mod bounds;
 pub mod config;
 pub mod env;
+pub mod hiro;
 pub mod limits;
 pub mod rates;
 pub mod rng;
