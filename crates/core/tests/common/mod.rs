@@ -15,6 +15,8 @@ pub struct PointEnv {
     pub start: Option<Vec<f32>>,
     /// The episode terminates once the first coordinate reaches this value.
     pub terminate_at: Option<f32>,
+    /// The end goal of every episode (drawn at random when `None`).
+    pub end_goal: Option<Vec<f32>>,
 }
 
 impl PointEnv {
@@ -42,6 +44,7 @@ impl PointEnv {
             extent,
             start: None,
             terminate_at: None,
+            end_goal: None,
         }
     }
 }
@@ -99,6 +102,10 @@ impl Env for PointEnv {
     }
 
     fn sample_end_goal(&self, rng: &mut Rng, _mode: Mode, out: &mut [f32]) {
+        if let Some(goal) = &self.end_goal {
+            out.copy_from_slice(goal);
+            return;
+        }
         let half = self.extent / 2.0;
         for g in out {
             *g = rng.uniform(-half, half);

@@ -11,12 +11,18 @@
 //! correction ([`OffPolicyCorrection`]) replaces it by the candidate under which the stored
 //! low-level actions are the most likely.
 //!
+//! [`HiroRollout`] plays one episode through the two levels with them.
+//!
 //! Angles: dimensions flagged in `angles` (radians; empty: none) are compared along the circle,
 //! as in HAC's goal test ([`crate::within_goal`]): every difference of two angles is wrapped to
 //! `[-pi, pi]`, so an offset names the shorter turn.
 
 use crate::Rng;
 use crate::bounds::angle_difference;
+
+mod rollout;
+
+pub use rollout::{HighTransition, HiroRollout, HiroSink};
 
 /// `to - from` per dimension, wrapped to `[-pi, pi]` on the dimensions flagged in `angles`.
 pub fn displacement(from: &[f32], to: &[f32], angles: &[bool], out: &mut [f32]) {
