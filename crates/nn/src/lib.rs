@@ -8,6 +8,7 @@
 //! - [`critic`]: [`CriticNet`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
 //! - [`learner`]: [`LevelLearner`], one level's DDPG-style update (critic step, then actor step
 //!   through the updated critic), optional target networks, whole-state checkpoints.
+//! - [`td3`]: [`Td3Learner`], TD3's twin-critic update (HIRO's learner at both levels).
 //! - [`policy`]: [`ExportedPolicy`], every level's actor in one self-contained file for use
 //!   elsewhere.
 //! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
@@ -26,6 +27,7 @@ mod kernels;
 pub mod learner;
 pub mod mlp;
 pub mod policy;
+pub mod td3;
 #[cfg(test)]
 mod testing;
 
@@ -38,3 +40,4 @@ pub use learner::{
 };
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
 pub use policy::ExportedPolicy;
+pub use td3::{Td3Config, Td3Learner};
