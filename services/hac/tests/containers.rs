@@ -462,10 +462,14 @@ const FAULT_RUN: &str = r#"services:
       HAC_CHECKPOINT_EVERY: "5"
 "#;
 
+/// The eight-trainer run: episode turns, and a budget far beyond the episodes to 90 % (the run
+/// stops there): embedded pendulum runs reach 90 % in 150-700 episodes, but 1 seed in 10 did
+/// not within 1000 (docs/RESULTS.md), and a test must not fail on a slow seed.
 const EIGHT_RUN: &str = r#"services:
   hac-learner:
     environment:
       HAC_EPISODES_IN_FLIGHT: "1"
+      HAC_EPISODES: "3000"
 "#;
 
 fn bring_up(stack: &Stack, trainers: usize) -> Vec<String> {
@@ -995,11 +999,11 @@ fn eight_trainers(image: &Image) {
     let started = Instant::now();
     stack.up(8);
     let learner = stack.learner_container();
-    // deploy/hac.toml as it is: pendulum, 2 levels, stop at 90 % (budget 1000 episodes). The
-    // learner exits 0 once the run is over.
+    // deploy/hac.toml with the budget above: pendulum, 2 levels, stop at 90 %. The learner
+    // exits 0 once the run is over.
     let ((), took) = wait_for(
         "the run finished",
-        Duration::from_secs(900),
+        Duration::from_secs(1800),
         || stack.tails(),
         || (inspect(&learner, "{{.State.Status}}") == "exited").then_some(()),
     );
