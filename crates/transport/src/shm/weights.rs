@@ -60,10 +60,20 @@ impl WeightsReceiver {
                     // The node and service live as long as their ports.
                     let _keep = (node, service, events);
                     while !stop.load(Ordering::Relaxed) {
+                        // Each sample is unpacked and released before the next is received:
+                        // the service lets a subscriber borrow one sample at a time, and
+                        // holding the newest while receiving the one after it failed with
+                        // ExceedsMaxBorrows whenever two snapshots were waiting.
                         let mut newest = None;
                         loop {
                             match subscriber.receive() {
-                                Ok(Some(sample)) => newest = Some(sample),
+                                Ok(Some(sample)) => match unpack_weights(sample.payload()) {
+                                    Ok(snapshot) => newest = Some(snapshot),
+                                    Err(e) => tracing::warn!(
+                                        error = %e,
+                                        "invalid weights from the learner"
+                                    ),
+                                },
                                 Ok(None) => break,
                                 Err(e) => {
                                     tracing::warn!(error = %e, "receiving weights");
@@ -71,13 +81,8 @@ impl WeightsReceiver {
                                 }
                             }
                         }
-                        if let Some(sample) = newest {
-                            match unpack_weights(sample.payload()) {
-                                Ok(snapshot) => deliver(snapshot, &into, &learner_version),
-                                Err(e) => {
-                                    tracing::warn!(error = %e, "invalid weights from the learner")
-                                }
-                            }
+                        if let Some(snapshot) = newest {
+                            deliver(snapshot, &into, &learner_version);
                         }
                         if let Err(e) = listener.timed_wait(|_| {}, POLL) {
                             tracing::warn!(error = %e, "waiting for weights");
