@@ -15,6 +15,7 @@
 //! same actor code.
 
 pub mod grpc;
+mod held;
 mod in_process;
 pub mod metrics;
 mod refusal_log;

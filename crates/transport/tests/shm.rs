@@ -1,15 +1,17 @@
 //! Shared memory between a learner and its actors, for real (iceoryx2 in `/dev/shm`, in one
 //! process): exactly-once storage through the learner's own checks, weights to late joiners,
 //! refusals as precise as gRPC's, a full window that blocks, two runs that never meet, a
-//! learner restart, and the fallback to gRPC.
+//! learner restart, messages held until durable and resent to a learner resumed from its
+//! write-ahead log, and the fallback to gRPC.
 
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
 use hac_agent::RunConfig;
 use hac_core::Batch;
-use hac_learner::{Learner, LearnerOptions, RejectReason};
+use hac_learner::{Learner, LearnerOptions, RejectReason, WalOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, Registration};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, serve};
 use hac_transport::shm::{
@@ -21,9 +23,15 @@ use tokio::sync::oneshot;
 const WAIT: Duration = Duration::from_secs(30);
 
 fn start_learner(seed: u64) -> Arc<Learner> {
+    let run = run_config(seed);
+    let options = LearnerOptions::for_run(&run);
+    Arc::new(Learner::start(run, options).unwrap())
+}
+
+fn run_config(seed: u64) -> RunConfig {
     let mut agent = hac_envs::make("mountain-car").unwrap().default_config(2);
     agent.test_episodes = 2;
-    let run = RunConfig {
+    RunConfig {
         env: "mountain-car".into(),
         levels: 2,
         seed,
@@ -34,8 +42,22 @@ fn start_learner(seed: u64) -> Arc<Learner> {
         subgoal_bounds: None,
         agent,
         tabular: None,
+    }
+}
+
+/// A learner with a write-ahead log in `dir` that commits only when the test says so
+/// (`sync_wal`), so that what is durable is exactly known; started again on the same `dir`, it
+/// replays the log (a learner killed before its first checkpoint).
+fn start_logged_learner(dir: &Path) -> Arc<Learner> {
+    let run = run_config(0);
+    let options = LearnerOptions {
+        wal: Some(WalOptions {
+            commit_bytes: usize::MAX,
+            max_pending_bytes: usize::MAX,
+            ..WalOptions::new(dir.join("wal"), Duration::from_secs(3600))
+        }),
+        ..LearnerOptions::for_run(&run)
     };
-    let options = LearnerOptions::for_run(&run);
     Arc::new(Learner::start(run, options).unwrap())
 }
 
@@ -433,6 +455,117 @@ fn a_shm_link_resends_to_a_restarted_learner_under_a_new_incarnation() {
     drop(link);
     second_learner.finish("test over");
     second.stop(&runtime);
+}
+
+/// `actor`'s incarnation, stored-through and durable-through sequences on `learner`.
+fn stored_through(learner: &Learner, actor: &str) -> (u64, u64, u64) {
+    let status = learner.status();
+    let a = status.actors.iter().find(|a| a.actor_id == actor).unwrap();
+    (a.incarnation, a.stored_through, a.durable_through)
+}
+
+#[test]
+fn messages_are_held_until_durable_and_a_resumed_learner_gets_the_rest_once() {
+    let dir = std::env::temp_dir().join(format!("hac-shm-durable-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let runtime = runtime();
+    let first = Served::start(
+        &runtime,
+        start_logged_learner(&dir),
+        localhost(),
+        Some(shm_options()),
+    );
+    let addr = first.addr;
+    let learner = first.learner.clone();
+    let mut link = link(&first, ShmMode::Require);
+    let incarnation = link.register(&registration("a")).unwrap().incarnation;
+    let stats = link.stats().unwrap();
+    // 12 messages (more than the window of 8): acknowledged, not durable, so all held.
+    for i in 0..12 {
+        link.send(batch_item(&learner, i % 2, 4, -1.0)).unwrap();
+    }
+    link.flush(WAIT).unwrap();
+    assert_eq!((link.acked_through(), link.durable_through()), (12, 0));
+    assert_eq!((link.unacked(), link.held()), (0, 12));
+    assert_eq!((stats.unacked(), stats.undurable()), (0, 12));
+    assert!(matches!(
+        link.flush_durable(Duration::from_millis(300)),
+        Err(LinkError::TimedOut(12))
+    ));
+    // The log commits: the learner says so without any new message, and the link lets go.
+    assert!(learner.sync_wal(WAIT));
+    link.flush_durable(WAIT).unwrap();
+    assert_eq!((link.durable_through(), link.held()), (12, 0));
+    assert_eq!(stats.undurable(), 0);
+    assert_eq!(
+        (stats.sent_transitions(), stats.durable_transitions()),
+        (48, 48)
+    );
+
+    // Six more, acknowledged and not durable when the learner dies as kill -9 would have it.
+    for i in 0..6 {
+        link.send(batch_item(&learner, i % 2, 4, 0.0)).unwrap();
+    }
+    link.flush(WAIT).unwrap();
+    assert_eq!((link.acked_through(), link.held()), (18, 6));
+    assert_eq!(stored_through(&learner, "a"), (incarnation, 18, 12));
+    learner.simulate_crash();
+    first.stop(&runtime);
+
+    // Resumed from its log on the same address (the same namespace): it has what was durable.
+    let second = Served::start(
+        &runtime,
+        start_logged_learner(&dir),
+        addr,
+        Some(shm_options()),
+    );
+    let resumed = second.learner.clone();
+    assert_eq!(stored_through(&resumed, "a"), (incarnation, 12, 12));
+    // The actor sends on before it notices the restart: the learner lacks 13..=18, the link
+    // registers again naming its incarnation, keeps it, and resends from 13.
+    for i in 0..2 {
+        link.send(batch_item(&resumed, i % 2, 4, -1.0)).unwrap();
+    }
+    link.flush(WAIT).unwrap();
+    assert!(resumed.sync_wal(WAIT));
+    link.flush_durable(WAIT).unwrap();
+    assert!(link.uses_shm());
+    assert_eq!(link.incarnation(), incarnation, "the incarnation is kept");
+    assert_eq!((link.durable_through(), link.held()), (20, 0));
+    assert_eq!(stored_through(&resumed, "a"), (incarnation, 20, 20));
+    let status = resumed.status();
+    // Every message once: 12 replayed from the log, 8 over shared memory after the restart
+    // (and the counts of the replayed ones restored).
+    assert_eq!((status.batches, status.transitions), (20, 80));
+    assert_eq!(
+        status
+            .levels
+            .iter()
+            .map(|l| l.transitions_inserted)
+            .sum::<u64>(),
+        80
+    );
+    // Only a gap can have been refused (the actor's send after the restart, if the learner saw
+    // it before the resend), and nothing stored twice.
+    let refused: u64 = status.rejected.iter().map(|(_, n)| n).sum();
+    eprintln!(
+        "after the restart: {refused} refused, {} duplicates",
+        status.duplicates
+    );
+    assert_eq!(refused, rejected(&resumed, RejectReason::SequenceGap));
+    assert_eq!(
+        status.messages,
+        20 + status.duplicates + refused,
+        "{status:?}"
+    );
+    assert_eq!(
+        (stats.sent_transitions(), stats.durable_transitions()),
+        (80, 80)
+    );
+    drop(link);
+    resumed.finish("test over");
+    second.stop(&runtime);
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

@@ -27,7 +27,6 @@
 //! With a [`Token`] every request carries `authorization: Bearer <token>`; with [`ClientTls`]
 //! the learner's URL is `https://` and its certificate must chain to the configured CA.
 
-use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -49,6 +48,7 @@ use tonic::transport::Channel;
 use tonic::{Code, Status};
 
 use super::{reject_reason, until_set};
+use crate::held::Held;
 use crate::security::{BearerToken, ClientTls, EndpointError, Token, endpoint};
 use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
 
@@ -176,59 +176,29 @@ struct Outbox {
     /// older numbering, whatever its incarnation number (a restarted learner can hand out the
     /// same number again).
     generation: u64,
-    /// Sequences `durable_through + 1 ..= durable_through + held.len()`, in order: every message
-    /// the learner has not said is durable, acknowledged ones included.
-    held: VecDeque<Arc<pb::IngestRequest>>,
-    /// What the learner said is durable, and stored (at least `durable_through`).
-    durable_through: u64,
-    acked_through: u64,
+    /// Every message the learner has not said is durable, acknowledged ones included, with what
+    /// the learner said is durable and stored.
+    held: Held<Arc<pb::IngestRequest>>,
     failure: Option<LinkError>,
     /// Re-registrations since the learner last acknowledged something.
     reregistrations: u32,
 }
 
 impl Outbox {
-    /// The message after `sent_through`, if it is in the outbox.
-    fn after(&self, sent_through: u64) -> Option<Arc<pb::IngestRequest>> {
-        let from = sent_through.max(self.durable_through) - self.durable_through;
-        usize::try_from(from)
-            .ok()
-            .and_then(|i| self.held.get(i).cloned())
-    }
-
     /// Puts the outbox's counts into `stats`.
     fn report(&self, stats: &LinkStats) {
-        stats.set_unacked(self.unacked());
-        stats.set_undurable(self.held.len() - self.unacked());
-    }
-
-    /// Messages sent and not yet acknowledged.
-    fn unacked(&self) -> usize {
-        (self.next_sequence() - 1 - self.acked_through) as usize
-    }
-
-    /// Whether the outbox holds a message after `sent_through`.
-    fn has_after(&self, sent_through: u64) -> bool {
-        sent_through.max(self.durable_through) < self.next_sequence() - 1
-    }
-
-    fn next_sequence(&self) -> u64 {
-        self.durable_through + self.held.len() as u64 + 1
+        stats.set_unacked(self.held.unacked());
+        stats.set_undurable(self.held.undurable());
     }
 
     /// Applies an ack's watermarks (never past what was sent, never back); returns the
     /// transitions of the messages that became durable.
     fn acknowledge(&mut self, acked_through: u64, durable_through: u64) -> u64 {
-        let sent = self.next_sequence() - 1;
-        self.acked_through = self.acked_through.max(acked_through.min(sent));
-        let durable = durable_through.min(self.acked_through);
         let mut transitions = 0;
-        while self.durable_through < durable {
-            if let Some(msg) = self.held.pop_front() {
+        self.held
+            .acknowledge(acked_through, durable_through, |msg| {
                 transitions += transitions_of(&msg);
-            }
-            self.durable_through += 1;
-        }
+            });
         transitions
     }
 
@@ -299,7 +269,22 @@ impl GrpcLink {
 
     /// Messages sent and not yet acknowledged.
     pub fn unacked(&self) -> usize {
-        self.shared.outbox.lock().unacked()
+        self.shared.outbox.lock().held.unacked()
+    }
+
+    /// The most messages the link holds until durable (`max_held`).
+    pub fn max_held(&self) -> usize {
+        self.shared.options.max_held
+    }
+
+    /// Numbers this link's next message `sequence + 1` under its incarnation, if it holds
+    /// nothing: it goes on with a numbering begun elsewhere (the shared-memory link falling back
+    /// to gRPC after the learner kept its incarnation, with everything through `sequence`
+    /// durable).
+    pub(crate) fn continue_after(&self, sequence: u64) {
+        let mut outbox = self.shared.outbox.lock();
+        outbox.held.continue_after(sequence);
+        outbox.report(&self.shared.stats);
     }
 
     /// Messages kept until the learner says they are durable (acknowledged ones included).
@@ -326,11 +311,23 @@ impl Drop for GrpcLink {
     }
 }
 
-impl ActorLink for GrpcLink {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+impl GrpcLink {
+    /// [`register`](ActorLink::register), naming the incarnation the caller's messages are
+    /// numbered under, if any (`previous`): a learner that holds every one of them before
+    /// `previous.resend_from` keeps that incarnation, any other answers with a fresh one above
+    /// it. For a link that numbers messages of its own, the shared-memory link whose control
+    /// plane this is; this link's own outbox is numbered under the admission either way.
+    pub(crate) fn register_naming(
+        &mut self,
+        registration: &Registration,
+        previous: Option<PreviousIncarnation>,
+    ) -> Result<Admission, LinkError> {
         let shared = self.shared.clone();
         let channel = self.channel.clone();
-        let request = pb::RegisterRequest::from(registration.clone());
+        let mut request = pb::RegisterRequest::from(registration.clone());
+        if let Some(previous) = previous {
+            previous.into_request(&mut request);
+        }
         let admission = self
             .runtime()
             .block_on(register_until_admitted(&shared, &channel, request))?;
@@ -351,6 +348,12 @@ impl ActorLink for GrpcLink {
         }
         Ok(admission)
     }
+}
+
+impl ActorLink for GrpcLink {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.register_naming(registration, None)
+    }
 
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         // Encode outside the lock; the numbering is filled in under it.
@@ -369,8 +372,9 @@ impl ActorLink for GrpcLink {
             if outbox.incarnation == 0 {
                 return Err(LinkError::Refused("send before register".into()));
             }
-            if outbox.unacked() < shared.options.window
-                && outbox.held.len() < shared.options.max_held
+            if outbox
+                .held
+                .has_room(shared.options.window, shared.options.max_held)
             {
                 break;
             }
@@ -380,9 +384,9 @@ impl ActorLink for GrpcLink {
         }
         msg.actor_id = outbox.actor_id().to_string();
         msg.incarnation = outbox.incarnation;
-        msg.sequence = outbox.next_sequence();
+        msg.sequence = outbox.held.next_sequence();
         let transitions = transitions_of(&msg);
-        outbox.held.push_back(Arc::new(msg));
+        outbox.held.push(Arc::new(msg));
         outbox.report(&shared.stats);
         shared
             .stats
@@ -400,7 +404,7 @@ impl ActorLink for GrpcLink {
             if let Some(e) = &outbox.failure {
                 return Err(e.clone());
             }
-            if outbox.unacked() == 0 {
+            if outbox.held.unacked() == 0 {
                 return Ok(());
             }
             if self
@@ -408,9 +412,9 @@ impl ActorLink for GrpcLink {
                 .changed
                 .wait_until(&mut outbox, deadline)
                 .timed_out()
-                && outbox.unacked() != 0
+                && outbox.held.unacked() != 0
             {
-                return Err(LinkError::TimedOut(outbox.unacked()));
+                return Err(LinkError::TimedOut(outbox.held.unacked()));
             }
         }
     }
@@ -715,9 +719,8 @@ fn renumber(outbox: &mut Outbox, stats: &LinkStats, incarnation: u64) {
     outbox.incarnation = incarnation;
     outbox.generation += 1;
     stats.incarnation.store(incarnation, Ordering::Relaxed);
-    outbox.acked_through = 0;
-    outbox.durable_through = 0;
-    for (sequence, msg) in (1..).zip(outbox.held.iter_mut()) {
+    outbox.held.renumber();
+    for (sequence, msg) in outbox.held.numbered_mut() {
         // Copies only a message still queued in a stream being torn down.
         let msg = Arc::make_mut(msg);
         msg.incarnation = incarnation;
@@ -756,7 +759,7 @@ async fn reregister(
         let mut request = pb::RegisterRequest::from(registration);
         PreviousIncarnation {
             incarnation: outbox.incarnation,
-            resend_from: outbox.durable_through + 1,
+            resend_from: outbox.held.durable_through() + 1,
         }
         .into_request(&mut request);
         (request, outbox.digest.clone())
@@ -776,7 +779,7 @@ async fn reregister(
             // A resumed learner that recovered this incarnation: the same numbering, resent from
             // the oldest message not durable (it acknowledges what it has as duplicates).
             outbox.generation += 1;
-            outbox.acked_through = outbox.durable_through;
+            outbox.held.rewind();
         } else {
             renumber(&mut outbox, &shared.stats, admission.incarnation);
         }
@@ -934,7 +937,7 @@ async fn ingest_stream(
         }
         // From the oldest message not durable: a restarted learner may have lost what it
         // acknowledged after its log's last commit (one that did not acknowledges duplicates).
-        (outbox.durable_through, outbox.generation)
+        (outbox.held.durable_through(), outbox.generation)
     };
     loop {
         let next = {
@@ -942,7 +945,7 @@ async fn ingest_stream(
             if outbox.generation != generation {
                 return StreamEnd::Renumbered;
             }
-            outbox.has_after(sent_through)
+            outbox.held.has_after(sent_through)
         };
         tokio::select! {
             biased;
@@ -968,7 +971,7 @@ async fn ingest_stream(
                 if outbox.generation != generation {
                     return StreamEnd::Renumbered;
                 }
-                if let Some(msg) = outbox.after(sent_through) {
+                if let Some(msg) = outbox.held.after(sent_through).cloned() {
                     sent_through = msg.sequence;
                     permit.send(msg);
                 }

@@ -1,22 +1,26 @@
 //! [`ShmLink`]: an actor's link to a learner on its host, over shared memory.
 //!
 //! Messages are packed straight into memory loaned from the actor's `ingest` publisher and stay
-//! in the link's outbox until a cumulative ack covers them; at most a window of them is
-//! unacknowledged, which the learner's subscriber buffer always holds. Waiting (a full window,
-//! a flush) sleeps on the actor's ack event; a wait without any ack for [`STALL_CHECK`] looks at
-//! the learner: if its subscriber is not the one the messages went to (a restarted learner), the
-//! unacknowledged messages are sent again, and the new learner's refusal (`unknown_actor`) makes
-//! the link register again and resend under the new incarnation, as the gRPC link does.
+//! held (the gRPC link's [`Held`]) until an ack says they are durable, not just stored; at most
+//! a window of them is unacknowledged, which the learner's subscriber buffer always holds, and at
+//! most `max_held` are held. Waiting (a full window, a flush) sleeps on the actor's ack event; a
+//! wait without any ack for [`STALL_CHECK`] looks at the learner: if its subscriber is not the
+//! one the messages went to (a restarted learner), everything not durable is sent again from the
+//! oldest on, a window at a time. A learner resumed from its write-ahead log knows the
+//! incarnation and acknowledges what it has as duplicates; one that does not (`unknown_actor`),
+//! or lacks a message (`sequence_gap`), makes the link register again naming its incarnation and
+//! the oldest message held, as the gRPC link does: kept, the link resends under the same
+//! numbering; not kept, it renumbers what it holds from 1 under the new incarnation.
 
-use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use hac_proto::{
-    Admission, IngestItem, IngestRef, PACKED_ALIGNMENT, Published, Registration, RejectReason,
-    WeightsSnapshot, max_packed_ingest_len, pack_ingest, packed_ingest_len,
+    Admission, IngestItem, IngestRef, PACKED_ALIGNMENT, PreviousIncarnation, Published,
+    Registration, RejectReason, WeightsSnapshot, max_packed_ingest_len, pack_ingest,
+    packed_ingest_len,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -34,6 +38,7 @@ use super::{
     cleanup_dead_nodes, host_identity,
 };
 use crate::grpc::{ConnectError, GrpcLink, GrpcLinkOptions};
+use crate::held::Held;
 use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
 
 /// Whether shared memory is required or only preferred.
@@ -100,6 +105,8 @@ struct Attached {
     node: Node,
     ingest: publish_subscribe::PortFactory<Ipc, [u8], ()>,
     publisher: Publisher<Ipc, [u8], ()>,
+    /// The largest packed message, in bytes.
+    slot: usize,
     _ingest_events: event::PortFactory<Ipc>,
     ingest_notifier: Notifier<Ipc>,
     acks: AckPorts,
@@ -112,6 +119,7 @@ struct Attached {
 
 /// One incarnation's ack subscription.
 struct AckPorts {
+    incarnation: u64,
     _service: publish_subscribe::PortFactory<Ipc, AckWire, ()>,
     subscriber: Subscriber<Ipc, AckWire, ()>,
     _events: event::PortFactory<Ipc>,
@@ -137,6 +145,7 @@ impl AckPorts {
             .create()
             .map_err(|e| ShmError::iceoryx(format!("listening to {name}"), e))?;
         Ok(Self {
+            incarnation,
             _service: service,
             subscriber,
             _events: events,
@@ -190,16 +199,7 @@ impl Attached {
             "this actor's shared memory",
             "lower --batch-transitions, or use --transport grpc",
         )?;
-        let publisher = ingest
-            .publisher_builder()
-            .initial_max_slice_len(slot)
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
-            .max_loaned_samples(1)
-            // Never block on a full buffer: only a dead learner's buffer can fill (the window
-            // fits the live one), and what it holds is resent anyway.
-            .backpressure_strategy(BackpressureStrategy::DiscardData)
-            .create()
-            .map_err(|e| ShmError::iceoryx(format!("publishing to {name}"), e))?;
+        let publisher = ingest_publisher(&ingest, slot)?;
         let ingest_events = node
             .service_builder(&name)
             .event()
@@ -218,6 +218,7 @@ impl Attached {
             node,
             ingest,
             publisher,
+            slot,
             _ingest_events: ingest_events,
             ingest_notifier,
             acks,
@@ -225,6 +226,41 @@ impl Attached {
             learner,
             _weights: weights,
         })
+    }
+}
+
+/// A publisher of packed messages of up to `slot` bytes to `ingest`.
+fn ingest_publisher(
+    ingest: &publish_subscribe::PortFactory<Ipc, [u8], ()>,
+    slot: usize,
+) -> Result<Publisher<Ipc, [u8], ()>, ShmError> {
+    ingest
+        .publisher_builder()
+        .initial_max_slice_len(slot)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .max_loaned_samples(1)
+        // Never block on a full buffer: only a dead learner's buffer can fill (the window fits
+        // the live one), and what it holds is resent anyway.
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .create()
+        .map_err(|e| ShmError::iceoryx(format!("publishing to {}", ingest.name()), e))
+}
+
+impl Attached {
+    /// New ports for a new learner: the ingest publisher and the ack subscription are made
+    /// again, so that nothing of the connections to the learner before carries over (a killed
+    /// learner's ports may be being removed by another process at that very moment, and a
+    /// connection to them left half made would never deliver). Keeps the old ones if new ones
+    /// cannot be had.
+    fn renew(&mut self, actor_id: &str) {
+        match ingest_publisher(&self.ingest, self.slot) {
+            Ok(publisher) => self.publisher = publisher,
+            Err(e) => tracing::warn!(error = %e, "renewing the ingest publisher"),
+        }
+        match AckPorts::open(&self.node, &self.namespace, actor_id, self.acks.incarnation) {
+            Ok(acks) => self.acks = acks,
+            Err(e) => tracing::warn!(error = %e, "renewing the ack subscription"),
+        }
     }
 }
 
@@ -245,14 +281,20 @@ fn subscriber_ids(service: &publish_subscribe::PortFactory<Ipc, [u8], ()>) -> Ve
 pub struct ShmLink {
     grpc: GrpcLink,
     options: ShmLinkOptions,
+    /// Most messages held until durable (the gRPC link's `max_held`).
+    max_held: usize,
     /// `None`: everything goes over `grpc`.
     attached: Option<Attached>,
     registration: Option<Registration>,
     digest: String,
     incarnation: u64,
-    /// Sequences `acked_through + 1 ..= acked_through + outbox.len()`, in order.
-    outbox: VecDeque<IngestItem>,
-    acked_through: u64,
+    /// Every message the learner has not said is durable, numbered under `incarnation`.
+    held: Held<IngestItem>,
+    /// The newest message published to the learner listening now: those after it wait for room
+    /// in the window (after a rewind, they are sent again).
+    sent_through: u64,
+    /// The gRPC link's counters, which this link keeps while it sends over shared memory.
+    stats: Arc<LinkStats>,
     weights: Arc<Published<WeightsSnapshot>>,
     learner_version: Arc<AtomicU64>,
     /// Since the last ack, or the last look at the learner.
@@ -273,15 +315,18 @@ impl std::fmt::Debug for ShmLink {
                 &self.attached.as_ref().map(|a| a.namespace.as_str()),
             )
             .field("incarnation", &self.incarnation)
-            .field("unacked", &self.outbox.len())
-            .field("acked_through", &self.acked_through)
+            .field("held", &self.held.len())
+            .field("unacked", &self.held.unacked())
+            .field("acked_through", &self.held.acked_through())
+            .field("durable_through", &self.held.durable_through())
             .finish_non_exhaustive()
     }
 }
 
 impl ShmLink {
     /// A link to the learner whose gRPC service is at `url` (the control plane, and everything
-    /// when shared memory is not used). Connects lazily, like [`GrpcLink::connect`].
+    /// when shared memory is not used). Connects lazily, like [`GrpcLink::connect`]. Holds at
+    /// most `grpc.max_held` messages until durable, as the gRPC link does.
     pub fn connect(
         url: &str,
         grpc: GrpcLinkOptions,
@@ -290,6 +335,9 @@ impl ShmLink {
         if options.window == 0 {
             return Err(ConnectError::ZeroWindow);
         }
+        if grpc.max_held < options.window {
+            return Err(ConnectError::HeldBelowWindow);
+        }
         let grpc = GrpcLink::connect(
             url,
             GrpcLinkOptions {
@@ -297,15 +345,18 @@ impl ShmLink {
                 ..grpc
             },
         )?;
+        let stats = grpc.stats().unwrap_or_default();
         Ok(Self {
+            max_held: grpc.max_held(),
             grpc,
             options,
             attached: None,
             registration: None,
             digest: String::new(),
             incarnation: 0,
-            outbox: VecDeque::new(),
-            acked_through: 0,
+            held: Held::default(),
+            sent_through: 0,
+            stats,
             weights: Arc::default(),
             learner_version: Arc::default(),
             quiet_since: Instant::now(),
@@ -329,12 +380,22 @@ impl ShmLink {
 
     /// Messages sent over shared memory and not yet acknowledged.
     pub fn unacked(&self) -> usize {
-        self.outbox.len()
+        self.held.unacked()
+    }
+
+    /// Messages kept until the learner says they are durable (acknowledged ones included).
+    pub fn held(&self) -> usize {
+        self.held.len()
     }
 
     /// Every message up to this sequence is acknowledged (in the current incarnation).
     pub fn acked_through(&self) -> u64 {
-        self.acked_through
+        self.held.acked_through()
+    }
+
+    /// Every message up to this sequence is durable (in the current incarnation).
+    pub fn durable_through(&self) -> u64 {
+        self.held.durable_through()
     }
 
     /// The incarnation messages are numbered under now (0 before registration).
@@ -353,8 +414,18 @@ impl ShmLink {
             .map_or("", |r| r.actor_id.as_str())
     }
 
+    /// Puts the held counts into the link's stats (while attached: the gRPC link reports its
+    /// own otherwise).
+    fn report(&self) {
+        if self.attached.is_some() {
+            self.stats.set_unacked(self.held.unacked());
+            self.stats.set_undurable(self.held.undurable());
+        }
+    }
+
     /// Attaches to the namespace `admission` offers, or falls back to gRPC (`Prefer`), or fails
-    /// (`Require`). Messages in the outbox go wherever the link ends up.
+    /// (`Require`). What is held goes wherever the link ends up: over gRPC, numbered on from
+    /// the durable watermark under the same incarnation.
     fn attach(&mut self, admission: &Admission) -> Result<(), LinkError> {
         let previous = self.attached.take();
         let offered = admission.shm.as_ref().filter(|offer| {
@@ -373,15 +444,17 @@ impl ShmLink {
             )),
             Some(offer) => Namespace::parse(&offer.namespace)
                 .and_then(|namespace| {
-                    // The same namespace (a new incarnation): reuse the ports, renew the acks.
+                    // The same namespace: reuse the ports; a new incarnation gets its acks.
                     match previous {
                         Some(mut attached) if attached.namespace == namespace => {
-                            attached.acks = AckPorts::open(
-                                &attached.node,
-                                &namespace,
-                                self.actor_id(),
-                                admission.incarnation,
-                            )?;
+                            if attached.acks.incarnation != admission.incarnation {
+                                attached.acks = AckPorts::open(
+                                    &attached.node,
+                                    &namespace,
+                                    self.actor_id(),
+                                    admission.incarnation,
+                                )?;
+                            }
                             Ok(attached)
                         }
                         _ => Attached::open(
@@ -405,23 +478,34 @@ impl ShmLink {
                     );
                 }
                 self.attached = Some(attached);
+                self.stats
+                    .incarnation
+                    .store(admission.incarnation, Ordering::Relaxed);
+                self.report();
                 Ok(())
             }
             Err(why) if self.options.mode == ShmMode::Require => Err(LinkError::Refused(why)),
             Err(why) => {
                 tracing::info!(reason = %why, "using gRPC");
                 self.grpc.watch_weights();
-                // What shared memory did not deliver goes over gRPC, in order.
-                for item in std::mem::take(&mut self.outbox) {
+                // What shared memory did not make durable goes over gRPC, in order, numbered on
+                // from there (a learner that kept the incarnation has everything before it).
+                self.grpc.continue_after(self.held.durable_through());
+                for item in self.held.take_all() {
+                    // The gRPC link counts it as sent again.
+                    self.stats
+                        .sent_transitions
+                        .fetch_sub(transitions_of(&item), Ordering::Relaxed);
                     self.grpc.send(item)?;
                 }
+                self.sent_through = self.held.durable_through();
                 Ok(())
             }
         }
     }
 
     /// Packs `item` as sequence `sequence` into a loaned sample and sends it.
-    fn publish(&mut self, item: &IngestItem, sequence: u64) -> Result<(), LinkError> {
+    fn publish(&self, item: &IngestItem, sequence: u64) -> Result<(), LinkError> {
         let attached = self.attached.as_ref().expect("publish only while attached");
         let msg = IngestRef {
             actor_id: self.registration.as_ref().map_or("", |r| &r.actor_id),
@@ -445,22 +529,39 @@ impl ShmLink {
         Ok(())
     }
 
-    /// Sends every message of the outbox again, numbered from `acked_through + 1`.
-    fn resend_all(&mut self) -> Result<(), LinkError> {
-        let outbox = std::mem::take(&mut self.outbox);
-        let mut result = Ok(());
-        for (sequence, item) in (self.acked_through + 1..).zip(&outbox) {
-            result = self.publish(item, sequence);
-            if result.is_err() {
-                break;
-            }
+    /// Publishes the held messages after `sent_through` while fewer than a window of them are
+    /// unacknowledged: a new message at once, the rest of a resend as acks make room (the
+    /// learner's buffer never holds more than a window).
+    fn pump(&mut self) -> Result<(), LinkError> {
+        let Some(attached) = &self.attached else {
+            return Ok(());
+        };
+        let window = attached.window as u64;
+        self.sent_through = self.sent_through.max(self.held.acked_through());
+        while self.sent_through < self.held.last()
+            && self.sent_through - self.held.acked_through() < window
+        {
+            let sequence = self.sent_through + 1;
+            let item = self
+                .held
+                .get(sequence)
+                .expect("held after the durable watermark");
+            self.publish(item, sequence)?;
+            self.sent_through = sequence;
         }
-        self.outbox = outbox;
-        result
+        Ok(())
+    }
+
+    /// Applies every ack waiting, handles a refusal, then publishes what the acks made room for.
+    fn poll(&mut self) -> Result<(), LinkError> {
+        self.receive_acks()?;
+        self.pump()?;
+        self.report();
+        Ok(())
     }
 
     /// Applies every ack waiting; handles a refusal.
-    fn poll(&mut self) -> Result<(), LinkError> {
+    fn receive_acks(&mut self) -> Result<(), LinkError> {
         loop {
             let Some(attached) = &self.attached else {
                 return Ok(());
@@ -481,16 +582,22 @@ impl ShmLink {
             self.alone_since = None;
             self.learner_version
                 .store(ack.weights_version, Ordering::Relaxed);
-            let sent = self.acked_through + self.outbox.len() as u64;
-            let through = ack.acked_through.min(sent);
-            while self.acked_through < through {
-                self.outbox.pop_front();
-                self.acked_through += 1;
-            }
+            self.stats
+                .learner_version
+                .store(ack.weights_version, Ordering::Relaxed);
+            let mut durable = 0;
+            self.held
+                .acknowledge(ack.acked_through, ack.durable_through, |item| {
+                    durable += transitions_of(&item);
+                });
+            self.stats
+                .durable_transitions
+                .fetch_add(durable, Ordering::Relaxed);
             match ack.refusal {
                 None => self.reregistrations = 0,
-                // A gap: a resumed learner lacks acknowledged messages this link dropped
-                // (shared memory reports no durable watermark): a fresh incarnation.
+                // A gap: a resumed learner lacks messages sent to the learner before it (this
+                // link sent on before it noticed the restart); registering again naming the
+                // incarnation keeps it, and what is not durable is resent.
                 Some(
                     RejectReason::UnknownActor
                     | RejectReason::StaleIncarnation
@@ -500,7 +607,7 @@ impl ShmLink {
                 Some(reason) => {
                     return Err(LinkError::Refused(format!(
                         "the learner refused message {} as `{}` (its log says why)",
-                        through + 1,
+                        self.held.acked_through() + 1,
                         reason.name()
                     )));
                 }
@@ -508,8 +615,10 @@ impl ShmLink {
         }
     }
 
-    /// Registers again (the learner does not know this incarnation), checks the run is the same,
-    /// and resends the outbox under the new incarnation.
+    /// Registers again (the learner does not know this incarnation, or lacks messages of it),
+    /// naming the incarnation and the oldest message held, checks the run is the same, and
+    /// resends what is held from the oldest on: under the same numbering if the learner kept
+    /// the incarnation (it has everything durable), else renumbered from 1 under the new one.
     fn reregister(&mut self) -> Result<(), LinkError> {
         self.reregistrations += 1;
         if self.reregistrations > MAX_REREGISTRATIONS {
@@ -523,7 +632,11 @@ impl ShmLink {
             .registration
             .clone()
             .ok_or_else(|| LinkError::Refused("send before register".into()))?;
-        let admission = self.grpc.register(&registration)?;
+        let previous = PreviousIncarnation {
+            incarnation: self.incarnation,
+            resend_from: self.held.durable_through() + 1,
+        };
+        let admission = self.grpc.register_naming(&registration, Some(previous))?;
         if admission.run_config_digest != self.digest {
             return Err(LinkError::Refused(format!(
                 "the learner runs a different config now (digest {}, registered under {}): \
@@ -531,20 +644,24 @@ impl ShmLink {
                 admission.run_config_digest, self.digest
             )));
         }
-        self.incarnation = admission.incarnation;
-        self.acked_through = 0;
+        let kept = admission.incarnation == self.incarnation;
+        if kept {
+            self.held.rewind();
+        } else {
+            self.incarnation = admission.incarnation;
+            self.held.renumber();
+        }
+        self.sent_through = self.held.durable_through();
         self.learner_version.store(0, Ordering::Relaxed);
         self.attach(&admission)?;
         tracing::info!(
             actor = %registration.actor_id,
             incarnation = admission.incarnation,
-            resent = self.outbox.len(),
+            kept,
+            resent = self.held.len(),
             "registered again with the learner"
         );
-        if self.attached.is_some() {
-            self.resend_all()?;
-        }
-        Ok(())
+        self.pump()
     }
 
     /// Sleeps until an ack may have come (at most until `deadline`), then looks at the learner
@@ -567,8 +684,10 @@ impl ShmLink {
         Ok(())
     }
 
-    /// After a long silence: a learner that is no longer the one the messages went to gets them
-    /// again; no learner at all for `give_up_after` fails the link.
+    /// After a long silence: a learner that is no longer the one the messages went to gets
+    /// everything not durable again, from the oldest on (what the one before acknowledged after
+    /// its log's last commit may be lost with it); no learner at all for `give_up_after` fails
+    /// the link.
     fn check_learner(&mut self) -> Result<(), LinkError> {
         let Some(attached) = &mut self.attached else {
             return Ok(());
@@ -585,16 +704,32 @@ impl ShmLink {
             }
             tracing::debug!("no learner listening; waiting");
         }
-        if now != attached.learner {
-            attached.learner = now.clone();
-            if !now.is_empty() {
-                self.alone_since = None;
-                tracing::info!(
-                    unacked = self.outbox.len(),
-                    "a new learner listens: resending what is unacknowledged"
-                );
-                self.resend_all()?;
-            }
+        if now == attached.learner {
+            return Ok(());
+        }
+        let listening = !now.is_empty();
+        attached.learner = now;
+        if listening {
+            self.alone_since = None;
+            // The acks the learner before sent are in: what they said durable stays so.
+            self.receive_acks()?;
+            let actor_id = self
+                .registration
+                .as_ref()
+                .map_or("", |r| r.actor_id.as_str());
+            let Some(attached) = &mut self.attached else {
+                return Ok(());
+            };
+            attached.renew(actor_id);
+            self.held.rewind();
+            self.sent_through = self.held.durable_through();
+            tracing::info!(
+                resent = self.held.len(),
+                from = self.held.durable_through() + 1,
+                "a new learner listens: resending what is not durable"
+            );
+            self.pump()?;
+            self.report();
         }
         Ok(())
     }
@@ -623,6 +758,14 @@ impl ShmLink {
     }
 }
 
+/// The transitions an ingest item carries (0 for an episode summary).
+fn transitions_of(item: &IngestItem) -> u64 {
+    match item {
+        IngestItem::Batch(batch) => batch.batch.len as u64,
+        IngestItem::Episode { .. } => 0,
+    }
+}
+
 impl ActorLink for ShmLink {
     fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
         let mut registration = registration.clone();
@@ -637,14 +780,15 @@ impl ActorLink for ShmLink {
         self.registration = Some(registration);
         self.digest = admission.run_config_digest.clone();
         self.incarnation = admission.incarnation;
-        self.acked_through = 0;
+        self.held.renumber();
+        self.sent_through = 0;
         self.attach(&admission)?;
-        if self.attached.is_some() {
-            self.resend_all()?;
-        }
+        self.pump()?;
         Ok(admission)
     }
 
+    /// Blocks while a window of messages is unacknowledged or `max_held` are not durable (or,
+    /// with [`Overflow::Drop`], drops a transition batch then), as the gRPC link does.
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         if self.incarnation == 0 {
             return Err(LinkError::Refused("send before register".into()));
@@ -657,7 +801,7 @@ impl ActorLink for ShmLink {
             if self.attached.is_none() {
                 continue;
             }
-            if self.outbox.len() < self.window() {
+            if self.held.has_room(self.window(), self.max_held) {
                 break;
             }
             if self.options.overflow == Overflow::Drop && matches!(item, IngestItem::Batch(_)) {
@@ -666,12 +810,15 @@ impl ActorLink for ShmLink {
             }
             self.wait(None)?;
         }
-        if self.outbox.is_empty() {
+        if self.held.unacked() == 0 {
             self.quiet_since = Instant::now();
         }
-        let sequence = self.acked_through + self.outbox.len() as u64 + 1;
-        self.publish(&item, sequence)?;
-        self.outbox.push_back(item);
+        self.stats
+            .sent_transitions
+            .fetch_add(transitions_of(&item), Ordering::Relaxed);
+        self.held.push(item);
+        self.pump()?;
+        self.report();
         Ok(())
     }
 
@@ -684,23 +831,35 @@ impl ActorLink for ShmLink {
                     .flush(deadline.saturating_duration_since(Instant::now()));
             }
             self.poll()?;
-            if self.attached.is_some() && self.outbox.is_empty() {
+            if self.attached.is_some() && self.held.unacked() == 0 {
                 return Ok(());
             }
             if Instant::now() >= deadline {
-                return Err(LinkError::TimedOut(self.outbox.len()));
+                return Err(LinkError::TimedOut(self.held.unacked()));
             }
             self.wait(Some(deadline))?;
         }
     }
 
-    /// Over shared memory, what is acknowledged (the shm server does not report durability);
-    /// over the gRPC fallback, durable.
+    /// Until the learner says everything is durable (the shm server reports it like the gRPC
+    /// server); over the gRPC fallback, the gRPC link's.
     fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
-        if self.attached.is_none() {
-            return self.grpc.flush_durable(timeout);
+        let deadline = Instant::now() + timeout;
+        loop {
+            if self.attached.is_none() {
+                return self
+                    .grpc
+                    .flush_durable(deadline.saturating_duration_since(Instant::now()));
+            }
+            self.poll()?;
+            if self.attached.is_some() && self.held.is_empty() {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                return Err(LinkError::TimedOut(self.held.len()));
+            }
+            self.wait(Some(deadline))?;
         }
-        self.flush(timeout)
     }
 
     fn weights(&self) -> &Published<WeightsSnapshot> {
@@ -728,10 +887,11 @@ impl ActorLink for ShmLink {
         self.grpc.report_evaluation(report)
     }
 
-    /// The gRPC control link's counters (incarnation, reconnects; unacked and the learner's
-    /// version while the data goes over gRPC).
+    /// The link's counters: over shared memory this link's (incarnation, unacknowledged and
+    /// undurable messages, transitions sent and durable, the learner's version), with the gRPC
+    /// control link's reconnects; over the gRPC fallback, the gRPC link's.
     fn stats(&self) -> Option<Arc<LinkStats>> {
-        self.grpc.stats()
+        Some(self.stats.clone())
     }
 
     fn transport(&self) -> &'static str {

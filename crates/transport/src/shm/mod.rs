@@ -27,17 +27,21 @@
 //! | `weights` | event | learner -> actors | "a snapshot is waiting" |
 //!
 //! # Delivery, exactly once and backpressure
-//! The same rules as gRPC. An actor keeps every message until a cumulative ack covers it, and
-//! never has more unacknowledged messages than the learner's subscriber buffer holds (the
-//! window), so nothing is ever dropped in shared memory. The learner reads a message only while
+//! The same rules as gRPC. An actor keeps every message until a cumulative ack says it is
+//! durable ([`Ack::durable_through`]: in the learner's write-ahead log), and never has more
+//! unacknowledged messages than the learner's subscriber buffer holds (the window), so nothing
+//! is ever dropped in shared memory. The learner reads a message only while
 //! it has room (its rate limiter), stores it through [`Learner::ingest_ref`](hac_learner::Learner)
 //! (the same checks, counts and dedup by actor, incarnation and sequence as gRPC), and acks it;
 //! when training falls behind it reads nothing, acks stop, and actors block in `send` (or, if
 //! asked, drop new batches and count them: [`Overflow::Drop`]). A refusal travels in the ack
 //! ([`Ack::refusal`]); after one, the learner ignores the rest of that incarnation, as gRPC ends
-//! the stream. `unknown_actor` and `stale_incarnation` make the actor register again and resend
-//! under the new incarnation; when the learner's subscriber changes (a restarted learner), the
-//! actor resends what is unacknowledged and is then asked to register again.
+//! the stream, until the actor starts over below the refused message. When the learner's
+//! subscriber changes (a restarted learner), the actor resends everything not durable from the
+//! oldest on; `unknown_actor`, `stale_incarnation` and `sequence_gap` make it register again
+//! naming its incarnation and the oldest message it holds, as the gRPC link does, and resend
+//! under the incarnation the learner answers with (the same one if the learner has everything
+//! before that message: a learner resumed from its write-ahead log).
 //!
 //! # Hygiene
 //! Both sides remove the resources of dead iceoryx2 nodes (killed processes) at start, and the
@@ -204,6 +208,10 @@ pub fn host_identity() -> String {
 pub struct Ack {
     /// Every message up to this sequence is stored (or was a duplicate of a stored one).
     pub acked_through: u64,
+    /// ... and up to this one durable (at most `acked_through`): in the learner's write-ahead
+    /// log, so that a learner killed and resumed still has it (without a log, stored). The
+    /// actor keeps every message until this covers it.
+    pub durable_through: u64,
     /// The newest weights version the learner has published.
     pub weights_version: u64,
     /// Set on a refusal: the message after `acked_through` was refused for this reason, and
@@ -212,8 +220,9 @@ pub struct Ack {
     pub incarnation: u64,
 }
 
-/// An [`Ack`] in shared memory.
-type AckWire = [u64; 4];
+/// An [`Ack`] in shared memory: `acked_through`, `weights_version`, the refusal's code (0: none,
+/// else 1 + its index in [`RejectReason::ALL`]), `incarnation`, `durable_through`.
+type AckWire = [u64; 5];
 
 impl Ack {
     fn to_wire(self) -> AckWire {
@@ -225,6 +234,7 @@ impl Ack {
             self.weights_version,
             refusal,
             self.incarnation,
+            self.durable_through,
         ]
     }
 
@@ -239,6 +249,7 @@ impl Ack {
             weights_version: wire[1],
             refusal,
             incarnation: wire[3],
+            durable_through: wire[4],
         })
     }
 }
@@ -321,11 +332,22 @@ mod tests {
     fn acks_round_trip_with_every_refusal() {
         let plain = Ack {
             acked_through: 17,
+            durable_through: 11,
             weights_version: 4,
             refusal: None,
             incarnation: 2,
         };
+        assert_eq!(plain.to_wire(), [17, 4, 0, 2, 11]);
         assert_eq!(Ack::from_wire(&plain.to_wire()), Some(plain));
+        // Every field has a place of its own: none is lost or swapped on the way.
+        let wide = Ack {
+            acked_through: u64::MAX - 1,
+            durable_through: u64::MAX - 2,
+            weights_version: u64::MAX - 3,
+            refusal: Some(RejectReason::SequenceGap),
+            incarnation: u64::MAX,
+        };
+        assert_eq!(Ack::from_wire(&wide.to_wire()), Some(wide));
         for reason in RejectReason::ALL {
             let ack = Ack {
                 refusal: Some(reason),
@@ -333,7 +355,7 @@ mod tests {
             };
             assert_eq!(Ack::from_wire(&ack.to_wire()), Some(ack));
         }
-        assert_eq!(Ack::from_wire(&[1, 1, 999, 1]), None);
+        assert_eq!(Ack::from_wire(&[1, 1, 999, 1, 1]), None);
     }
 
     #[test]

@@ -3,11 +3,14 @@
 //! Two threads. *Ingest* waits for room in the learner (backpressure: nothing is read meanwhile,
 //! so actors' windows fill and they block), takes the next packed message from the `ingest`
 //! subscriber, ingests it in place through [`Learner::ingest_ref`] and acknowledges cumulatively
-//! per actor incarnation (acks are published once per round of messages, not per message). When
-//! nothing waits it sleeps on the `ingest` event, and every few seconds it removes dead nodes
-//! and the ack services nobody listens to any more, and logs the summary of refusals not logged
-//! one by one (a `RefusalLog`). *Weights* waits for each new snapshot in the
-//! learner's [`Published`](hac_proto::Published) cell and publishes it packed, with history 1.
+//! per actor incarnation (acks are published once per round of messages, not per message), with
+//! the durable watermark read from the learner as the gRPC server does. When nothing waits it
+//! sleeps on the `ingest` event, and every few seconds it removes dead nodes and the ack services
+//! nobody listens to any more, and logs the summary of refusals not logged one by one (a
+//! `RefusalLog`). *Weights* waits for each new snapshot in the learner's
+//! [`Published`](hac_proto::Published) cell and publishes it packed, with history 1. With a
+//! write-ahead log, a third thread, *commits*, signals the `ingest` event after each commit of
+//! the log, so that durability advancing reaches the actors at once, without new messages.
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -18,8 +21,8 @@ use std::time::{Duration, Instant};
 
 use hac_learner::{IngestError, Learner, RoomError};
 use hac_proto::{
-    Clipped, PACKED_ALIGNMENT, ShmOffer, WeightsSnapshot, pack_weights, packed_weights_len,
-    unpack_ingest,
+    Clipped, PACKED_ALIGNMENT, Published, ShmOffer, WeightsSnapshot, pack_weights,
+    packed_weights_len, unpack_ingest,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -65,6 +68,8 @@ const ACK_EVERY: usize = 32;
 const HOUSEKEEPING: Duration = Duration::from_secs(2);
 /// The weights thread's wait for a new version, between deliveries of history to late joiners.
 const WEIGHTS_WAIT: Duration = Duration::from_millis(50);
+/// The commits thread's wait for a commit, between looks at the stop flag.
+const COMMIT_WAIT: Duration = Duration::from_millis(100);
 
 type IngestService = publish_subscribe::PortFactory<Ipc, [u8], ()>;
 type AckService = publish_subscribe::PortFactory<Ipc, AckWire, ()>;
@@ -136,7 +141,8 @@ impl ShmServer {
         let ingest_events = node
             .service_builder(&ingest_name)
             .event()
-            .max_notifiers(options.max_actors)
+            // The actors, and the commits thread.
+            .max_notifiers(options.max_actors + 1)
             .max_listeners(2)
             .max_nodes(options.max_actors + 4)
             .open_or_create()
@@ -179,6 +185,17 @@ impl ShmServer {
             .create()
             .map_err(|e| ShmError::iceoryx(format!("notifying {weights_name}"), e))?;
 
+        // Only with a write-ahead log: without one, what is stored is durable at once.
+        let commit_notifier = match learner.durable_commits() {
+            Some(_) => Some(
+                ingest_events
+                    .notifier_builder()
+                    .create()
+                    .map_err(|e| ShmError::iceoryx(format!("notifying {ingest_name}"), e))?,
+            ),
+            None => None,
+        };
+
         let node = Arc::new(node);
         let stop = Arc::new(AtomicBool::new(false));
         let ingest_thread = Ingest {
@@ -191,8 +208,14 @@ impl ShmServer {
             listener,
             acks: HashMap::new(),
             refusals: RefusalLog::new(SUMMARY_INTERVAL),
+            commits_seen: None,
             stop: stop.clone(),
         };
+        let commits_thread = commit_notifier.map(|notifier| Commits {
+            learner: learner.clone(),
+            notifier,
+            stop: stop.clone(),
+        });
         let weights_thread = Weights {
             learner,
             _node: node,
@@ -208,10 +231,13 @@ impl ShmServer {
                 .spawn(f)
                 .map_err(|e| ShmError::iceoryx("starting a thread", e))
         };
-        let threads = vec![
+        let mut threads = vec![
             spawn("hac-shm-ingest", Box::new(move || ingest_thread.run()))?,
             spawn("hac-shm-weights", Box::new(move || weights_thread.run()))?,
         ];
+        if let Some(commits) = commits_thread {
+            threads.push(spawn("hac-shm-commits", Box::new(move || commits.run()))?);
+        }
         tracing::info!(
             namespace = %namespace,
             max_actors = options.max_actors,
@@ -256,10 +282,14 @@ impl Drop for ShmServer {
 struct AckPort {
     incarnation: u64,
     acked_through: u64,
+    /// The durable watermark sent (at most `acked_through`).
+    durable_through: u64,
     /// An ack is due.
     dirty: bool,
-    /// A message was refused: the rest of this incarnation is not read (as gRPC ends the stream).
-    refused: bool,
+    /// The sequence of a message refused: the rest of this incarnation is not read (as gRPC ends
+    /// the stream), until the actor starts over below it (it registered again and the learner
+    /// kept its incarnation: it resends from its oldest message not durable).
+    refused_at: Option<u64>,
     /// The learner's status knows this actor streams over shared memory.
     transport_noted: bool,
     last_message: Instant,
@@ -291,8 +321,9 @@ impl AckPort {
         Ok(Self {
             incarnation,
             acked_through: 0,
+            durable_through: 0,
             dirty: false,
-            refused: false,
+            refused_at: None,
             transport_noted: false,
             last_message: Instant::now(),
             service,
@@ -356,6 +387,8 @@ struct Ingest {
     /// By actor id, one entry per incarnation seen recently.
     acks: HashMap<String, Vec<AckPort>>,
     refusals: RefusalLog,
+    /// The write-ahead log's commit count at the last look (`None`: no look yet, or no log).
+    commits_seen: Option<u64>,
     stop: Arc<AtomicBool>,
 }
 
@@ -428,8 +461,11 @@ impl Ingest {
             return;
         };
         port.last_message = Instant::now();
-        if port.refused {
-            return;
+        if let Some(refused) = port.refused_at {
+            if msg.sequence >= refused {
+                return;
+            }
+            port.refused_at = None;
         }
         match self.learner.ingest_ref(&msg) {
             Ok(_) => {
@@ -445,9 +481,10 @@ impl Ingest {
                 // The learner counted it.
                 self.refusals
                     .refused("ingest message", e.reason(), msg.actor_id, &e);
-                port.refused = true;
+                port.refused_at = Some(msg.sequence);
                 let ack = Ack {
                     acked_through: port.acked_through,
+                    durable_through: port.durable_through,
                     weights_version: weights_version(&self.learner),
                     refusal: Some(e.reason()),
                     incarnation: port.incarnation,
@@ -457,17 +494,45 @@ impl Ingest {
         }
     }
 
+    /// Publishes the acks due: every port that stored something since its last ack, or whose
+    /// durable watermark advanced (read from the learner when something was stored, or the log
+    /// committed since the last look; without a log, stored is durable).
     fn flush_acks(&mut self) {
+        let logged = self.learner.durable_commits();
+        // Read before the watermarks: a commit after this is seen at the next look.
+        let commits = logged.and_then(Published::latest).map(|n| *n);
+        let committed = commits != self.commits_seen;
+        self.commits_seen = commits;
         let mut version = None;
-        for port in self.acks.values_mut().flatten().filter(|p| p.dirty) {
-            let weights_version = *version.get_or_insert_with(|| weights_version(&self.learner));
-            let ack = Ack {
-                acked_through: port.acked_through,
-                weights_version,
-                refusal: None,
-                incarnation: port.incarnation,
-            };
-            port.send(ack);
+        for (actor_id, ports) in &mut self.acks {
+            for port in ports.iter_mut() {
+                if port.durable_through < port.acked_through && (port.dirty || committed) {
+                    let durable = match logged {
+                        Some(_) => self
+                            .learner
+                            .durable_through(actor_id, port.incarnation)
+                            .min(port.acked_through),
+                        None => port.acked_through,
+                    };
+                    if durable > port.durable_through {
+                        port.durable_through = durable;
+                        port.dirty = true;
+                    }
+                }
+                if !port.dirty {
+                    continue;
+                }
+                let weights_version =
+                    *version.get_or_insert_with(|| weights_version(&self.learner));
+                let ack = Ack {
+                    acked_through: port.acked_through,
+                    durable_through: port.durable_through,
+                    weights_version,
+                    refusal: None,
+                    incarnation: port.incarnation,
+                };
+                port.send(ack);
+            }
         }
     }
 
@@ -514,6 +579,31 @@ fn port<'a>(
         },
     };
     ports.get_mut(index)
+}
+
+/// Signals the `ingest` event after each commit of the learner's write-ahead log: the ingest
+/// thread wakes and sends the acks whose durable watermark advanced.
+struct Commits {
+    learner: Arc<Learner>,
+    notifier: Notifier<Ipc>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Commits {
+    fn run(self) {
+        let Some(commits) = self.learner.durable_commits() else {
+            return;
+        };
+        let mut seen = commits.latest().map(|n| *n);
+        while !self.stop.load(Ordering::Relaxed) {
+            if let Some(n) = commits.wait_for(COMMIT_WAIT, |&n| Some(n) != seen) {
+                seen = Some(*n);
+                if let Err(e) = self.notifier.notify() {
+                    tracing::debug!(error = %e, "notifying the ingest thread of a commit");
+                }
+            }
+        }
+    }
 }
 
 fn weights_version(learner: &Learner) -> u64 {
