@@ -387,6 +387,56 @@ fn a_full_window_blocks_until_the_learner_reads_again_and_nothing_is_stored_twic
 }
 
 #[test]
+fn two_actors_streaming_at_once_are_both_stored() {
+    // Both send as fast as their windows allow for 2 s. The learner's subscriber finds the
+    // first actor's next message waiting nearly every time it looks, so reading one message at
+    // a time in the subscriber's order served that actor alone (one trainer stuck at 0 stored
+    // in 3 of 9 starts of two real trainers); rounds of one message per actor share it.
+    let runtime = runtime();
+    let served = Served::start(&runtime, start_learner(0), localhost(), Some(shm_options()));
+    let learner = served.learner.clone();
+    let until = std::time::Instant::now() + Duration::from_secs(2);
+    let senders: Vec<_> = ["a", "b"]
+        .into_iter()
+        .map(|id| {
+            let mut link = link(&served, ShmMode::Require);
+            link.register(&registration(id)).unwrap();
+            let item = batch_item(&learner, 0, 16, -1.0);
+            std::thread::spawn(move || {
+                let mut sent = 0u64;
+                while std::time::Instant::now() < until {
+                    link.send(item.clone()).unwrap();
+                    // Episodes earn updates, which the learner's rate limiter waits for: the
+                    // learner, not the actors, sets the pace, as in a run.
+                    link.send(episode()).unwrap();
+                    sent += 2;
+                }
+                link.flush(WAIT).unwrap();
+                (link, sent)
+            })
+        })
+        .collect();
+    let mut links = Vec::new();
+    for sender in senders {
+        let (link, sent) = sender.join().unwrap();
+        assert_eq!(link.acked_through(), sent);
+        links.push((link, sent));
+    }
+    let (a, b) = (
+        stored_through(&learner, "a").1,
+        stored_through(&learner, "b").1,
+    );
+    eprintln!("stored in 2 s: a {a}, b {b}");
+    assert_eq!((a, b), (links[0].1, links[1].1));
+    // Neither waited for the other: each stored at least a quarter of the total (60:40 here;
+    // 87:13 before the rounds).
+    assert!(4 * a.min(b) >= a + b, "a {a}, b {b}");
+    drop(links);
+    learner.finish("test over");
+    served.stop(&runtime);
+}
+
+#[test]
 fn with_the_drop_policy_a_full_window_drops_batches_and_counts_them() {
     let runtime = runtime();
     let learner = start_learner(0);

@@ -4,8 +4,7 @@
 //! same address each time. Nothing the learner acknowledged as durable is lost (every actor
 //! keeps its incarnation through every restart: a learner missing a durable message could not
 //! keep it), nothing is stored twice (the learner's stored transitions are exactly the
-//! transitions the actors sent), and the actors are back and ingesting within 10 s each time
-//! (over shared memory: the learner ingests again from them, see [`Back::Either`]).
+//! transitions the actors sent), and both actors are back and ingesting within 10 s each time.
 
 use std::path::Path;
 use std::process::{Child, Command};
@@ -77,30 +76,14 @@ fn stored(status: &serde_json::Value) -> [u64; 2] {
     })
 }
 
-/// Which actors must be back for [`ingesting`].
-#[derive(Clone, Copy)]
-enum Back {
-    Both,
-    /// Over shared memory the learner's one subscriber takes the actors' messages in a fixed
-    /// order while it has little room, so one trainer can wait for long stretches while the
-    /// other streams (as on main before this test existed); the learner ingesting again from
-    /// either one shows the restart is over, and the accounting at the end covers both.
-    Either,
-}
-
-/// Waits until the actors (`back`) have stored more than `above` on the learner at `addr`; how
-/// long that took from `since`.
-fn ingesting(addr: &str, above: [u64; 2], back: Back, since: Instant, logs: &Path) -> Duration {
+/// Waits until both actors have stored more than `above` on the learner at `addr`; how long
+/// that took from `since`.
+fn ingesting(addr: &str, above: [u64; 2], since: Instant, logs: &Path) -> Duration {
     let mut last = None;
     loop {
         if let Some(s) = status(addr) {
             let now = stored(&s);
-            let (first, second) = (now[0] > above[0], now[1] > above[1]);
-            let done = match back {
-                Back::Both => first && second,
-                Back::Either => first || second,
-            };
-            if done {
+            if now[0] > above[0] && now[1] > above[1] {
                 return since.elapsed();
             }
             last = Some(s);
@@ -166,8 +149,7 @@ fn kills_lose_nothing_durable_and_store_nothing_twice(test: &str, transport: &st
         ];
         actors.0.push((name.into(), hac(&args, &dir, name)));
     }
-    let who = if shm { Back::Either } else { Back::Both };
-    ingesting(&addr, [0, 0], who, Instant::now(), &dir);
+    ingesting(&addr, [0, 0], Instant::now(), &dir);
 
     // Varied moments, from a fixed seed: 0.5 to 2.5 s of streaming before each kill.
     let mut seed: u64 = 20;
@@ -192,7 +174,7 @@ fn kills_lose_nothing_durable_and_store_nothing_twice(test: &str, transport: &st
             }
             std::thread::sleep(Duration::from_millis(20));
         };
-        let back = ingesting(&addr, recovered, who, killed, &dir);
+        let back = ingesting(&addr, recovered, killed, &dir);
         eprintln!(
             "kill {kill} after {pause:?}: recovered stored-through {recovered:?}, ingesting again after {back:?}"
         );

@@ -24,6 +24,7 @@ use hac_proto::{
     Clipped, PACKED_ALIGNMENT, Published, ShmOffer, WeightsSnapshot, pack_weights,
     packed_weights_len, unpack_ingest,
 };
+use iceoryx2::port::ReceiveError;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -393,49 +394,76 @@ struct Ingest {
 }
 
 impl Ingest {
+    /// Reads in rounds of at most one message per actor. The subscriber's `receive` looks at
+    /// its publishers in a fixed order and returns the first one's message, so a loop that
+    /// took one message at a time served the first actor whenever it had one waiting (a fast
+    /// actor refills its window as soon as it is acknowledged) and starved the others: with two
+    /// shared-memory trainers, one often stored nothing. A subscriber borrows at most one
+    /// message per publisher and `receive` skips the publishers at that limit, so holding the
+    /// round's messages until the round is taken moves it on to the next actor each time.
     fn run(mut self) {
         let mut last_housekeeping = Instant::now();
         let mut taken = 0usize;
+        let mut round = Vec::new();
         while !self.stop.load(Ordering::Relaxed) {
-            if !self.learner.has_room() {
-                self.flush_acks();
-                match self.learner.wait_for_room(ROOM_WAIT) {
-                    // Once the run is over, messages are read and refused as `finished`.
-                    Ok(()) | Err(RoomError::Finished) => {}
-                    Err(RoomError::TimedOut) => continue,
-                }
-            }
-            match self.subscriber.receive() {
-                Ok(Some(sample)) => {
-                    self.take(sample.payload());
-                    drop(sample);
-                    taken += 1;
-                    if taken.is_multiple_of(ACK_EVERY) {
-                        self.flush_acks();
-                        if last_housekeeping.elapsed() >= HOUSEKEEPING {
-                            self.housekeeping();
-                            last_housekeeping = Instant::now();
-                        }
+            loop {
+                match self.subscriber.receive() {
+                    Ok(Some(sample)) => round.push(sample),
+                    Ok(None) => break,
+                    // Every publisher with a message waiting has one in this round.
+                    Err(ReceiveError::ExceedsMaxBorrows) => break,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "receiving an ingest message");
+                        std::thread::sleep(IDLE_WAIT);
+                        break;
                     }
                 }
-                Ok(None) => {
+            }
+            if round.is_empty() {
+                self.flush_acks();
+                if last_housekeeping.elapsed() >= HOUSEKEEPING {
+                    self.housekeeping();
+                    last_housekeeping = Instant::now();
+                }
+                if let Err(e) = self.listener.timed_wait(|_| {}, IDLE_WAIT) {
+                    tracing::warn!(error = %e, "waiting for ingest messages");
+                    std::thread::sleep(IDLE_WAIT);
+                }
+                continue;
+            }
+            for sample in round.drain(..) {
+                if !self.wait_for_room() {
+                    // Stopping: the rest of the round is not acknowledged, so it is not lost.
+                    break;
+                }
+                self.take(sample.payload());
+                drop(sample);
+                taken += 1;
+                if taken.is_multiple_of(ACK_EVERY) {
                     self.flush_acks();
                     if last_housekeeping.elapsed() >= HOUSEKEEPING {
                         self.housekeeping();
                         last_housekeeping = Instant::now();
                     }
-                    if let Err(e) = self.listener.timed_wait(|_| {}, IDLE_WAIT) {
-                        tracing::warn!(error = %e, "waiting for ingest messages");
-                        std::thread::sleep(IDLE_WAIT);
-                    }
-                }
-                Err(e) => {
-                    tracing::warn!(error = %e, "receiving an ingest message");
-                    std::thread::sleep(IDLE_WAIT);
                 }
             }
         }
         self.flush_acks();
+    }
+
+    /// Backpressure: waits until the learner has room for a message (acknowledging what was
+    /// stored meanwhile). Once the run is over messages are read and refused as `finished`.
+    /// False when the server stops first.
+    fn wait_for_room(&mut self) -> bool {
+        while !self.learner.has_room() {
+            self.flush_acks();
+            match self.learner.wait_for_room(ROOM_WAIT) {
+                Ok(()) | Err(RoomError::Finished) => return true,
+                Err(RoomError::TimedOut) if self.stop.load(Ordering::Relaxed) => return false,
+                Err(RoomError::TimedOut) => {}
+            }
+        }
+        true
     }
 
     /// Ingests one packed message and notes the ack it earns (or sends the refusal at once).
