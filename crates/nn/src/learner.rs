@@ -544,22 +544,20 @@ pub struct LevelLearner {
 }
 
 impl Clone for LevelLearner {
-    /// An independent copy with as many threads (its own workers).
+    /// An independent copy of everything an update reads and changes, which updates on the
+    /// calling thread (it starts no worker; [`LevelLearner::set_threads`] gives it more): a
+    /// checkpoint's snapshot is a clone that never updates. Scratch buffers are not copied.
     fn clone(&self) -> Self {
-        let mut copy = Self {
-            model: Arc::new((*self.model).clone()),
-            actor_opt: self.actor_opt.clone(),
-            critic_opt: self.critic_opt.clone(),
-            chunks: self
-                .chunks
-                .iter()
-                .map(|c| Mutex::new(lock(c).clone()))
-                .collect(),
-            actor_grads: self.actor_grads.clone(),
-            critic_grads: self.critic_grads.clone(),
-            pool: None,
-        };
-        copy.set_threads(self.threads());
+        let mut copy = Self::assemble(
+            self.model.config.clone(),
+            self.model.actor.clone(),
+            self.model.critic.clone(),
+        );
+        exclusive(&mut copy.model)
+            .targets
+            .clone_from(&self.model.targets);
+        copy.actor_opt = self.actor_opt.clone();
+        copy.critic_opt = self.critic_opt.clone();
         copy
     }
 }
@@ -1371,14 +1369,14 @@ mod tests {
     }
 
     #[test]
-    fn a_clone_keeps_its_thread_count_and_continues_identically() {
+    fn a_clone_updates_on_one_thread_and_continues_identically() {
         let mut rng = Rng::seed_from(44);
         let mut learner = LevelLearner::new(config(Some(0.05)), &mut rng);
         learner.set_threads(3);
         learner.update(&random_batch(&mut rng, 64));
         let mut copy = learner.clone();
-        assert_eq!(copy.threads(), 3);
-        copy.set_threads(1);
+        assert_eq!(copy.threads(), 1);
+        assert_eq!(copy.to_safetensors(), learner.to_safetensors());
         for _ in 0..3 {
             let batch = random_batch(&mut rng, 900);
             assert_eq!(learner.update(&batch), copy.update(&batch));
