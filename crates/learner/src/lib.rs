@@ -7,7 +7,9 @@
 //!   routes batches to the actor's replay shard of the batch's level.
 //! - One trainer thread per level takes updates from its [`RateLimiter`] (updates per ingested
 //!   episode, the paper's 40 by default), so training neither runs ahead of the data nor falls
-//!   behind it; [`Learner::wait_for_room`] is the backpressure ingest applies to actors.
+//!   behind it; [`Learner::wait_for_room`] is the backpressure ingest applies to actors. The
+//!   levels share `learner_threads` ([`level_threads`]): a level with more than one thread cuts
+//!   each minibatch's gradient among them (weights bit-identical to one thread's).
 //! - Weights are published as whole-model, versioned [`WeightsSnapshot`]s through a
 //!   [`Published`] cell: whenever every level has caught up with the episodes ingested (so an
 //!   actor that waits for it gets exactly the paper's schedule), when every level has done
@@ -98,6 +100,32 @@ pub struct LearnerOptions {
     /// checkpoints; `None`: no log, and a message is durable as soon as it is stored (acked),
     /// which holds only as long as the process lives.
     pub wal: Option<WalOptions>,
+    /// Threads for updating the networks, shared among the levels (see [`level_threads`]),
+    /// which still update in parallel, each on its trainer thread and the workers of its share.
+    /// The weights do not depend on it. Default: the cores available to the process.
+    pub learner_threads: usize,
+}
+
+/// The most [`LearnerOptions::learner_threads`] accepted.
+pub const MAX_LEARNER_THREADS: usize = 1024;
+
+/// The threads available to this process (at least 1): the default
+/// [`LearnerOptions::learner_threads`].
+pub fn available_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, std::num::NonZero::get)
+}
+
+/// How a budget of `threads` update threads is shared among `levels` levels: evenly, the
+/// remainder to the lowest levels, and at least one each (a level always updates on its own
+/// trainer thread, so a budget below the number of levels is exceeded). No level gets more
+/// than [`hac_nn::GRADIENT_CHUNKS`], the most an update can use.
+pub fn level_threads(threads: usize, levels: usize) -> Vec<usize> {
+    (0..levels)
+        .map(|level| {
+            let share = threads / levels + usize::from(level < threads % levels);
+            share.clamp(1, hac_nn::GRADIENT_CHUNKS)
+        })
+        .collect()
 }
 
 /// The default [`LearnerOptions::forget_actors_after`].
@@ -117,6 +145,7 @@ impl LearnerOptions {
             turn_lease: TURN_LEASE,
             forget_actors_after: FORGET_ACTORS_AFTER,
             wal: None,
+            learner_threads: available_threads(),
         }
     }
 
@@ -145,6 +174,9 @@ impl LearnerOptions {
         }
         if self.forget_actors_after.is_zero() {
             return Err(InvalidOption::ForgetActorsAfter);
+        }
+        if self.learner_threads == 0 || self.learner_threads > MAX_LEARNER_THREADS {
+            return Err(InvalidOption::LearnerThreads(self.learner_threads));
         }
         if let Some(rate) = self.max_actor_messages_per_second
             && !(rate.is_finite() && rate > 0.0)
@@ -175,6 +207,8 @@ pub enum InvalidOption {
          per second, got {0}"
     )]
     MaxActorMessagesPerSecond(f64),
+    #[error("invalid value for `learner_threads`: must be 1 to 1024, got {0}")]
+    LearnerThreads(usize),
 }
 
 /// Why the learner could not start.
@@ -820,6 +854,10 @@ impl Learner {
         shared.trouble.publish(Arc::new(None));
         if let Some(best) = from.and_then(LearnerCheckpoint::best) {
             shared.best.publish(Arc::new(best));
+        }
+        let shares = level_threads(shared.options.learner_threads, levels);
+        for (learner, threads) in learners.iter_mut().zip(shares) {
+            learner.set_threads(threads);
         }
         let trainers = learners
             .into_iter()
@@ -2082,4 +2120,48 @@ fn learner_start_id() -> u64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64);
     mix(nanos, u64::from(std::process::id()), 0).max(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn level_threads_share_the_budget_and_give_each_level_one() {
+        assert_eq!(level_threads(2, 2), [1, 1]);
+        assert_eq!(level_threads(2, 1), [2]);
+        assert_eq!(level_threads(5, 2), [3, 2]);
+        assert_eq!(level_threads(7, 3), [3, 2, 2]);
+        assert_eq!(level_threads(1, 3), [1, 1, 1]);
+        assert_eq!(level_threads(64, 1), [hac_nn::GRADIENT_CHUNKS]);
+    }
+
+    #[test]
+    fn learner_threads_must_be_1_to_1024() {
+        let run = RunConfig {
+            env: "pendulum".into(),
+            levels: 2,
+            seed: 0,
+            episodes: 1,
+            stop_at: None,
+            replay_shards: 1,
+            max_actions: None,
+            subgoal_bounds: None,
+            agent: hac_envs::make("pendulum").unwrap().default_config(2),
+            tabular: None,
+        };
+        let mut options = LearnerOptions::for_run(&run);
+        assert!(options.learner_threads >= 1);
+        for (threads, ok) in [(0, false), (1, true), (1024, true), (1025, false)] {
+            options.learner_threads = threads;
+            assert_eq!(
+                options.validate(),
+                if ok {
+                    Ok(())
+                } else {
+                    Err(InvalidOption::LearnerThreads(threads))
+                }
+            );
+        }
+    }
 }

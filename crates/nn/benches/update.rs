@@ -1,8 +1,8 @@
 //! One full learner update (critic step + actor step) at the reference batch size and network
 //! (batch 1024, hidden [64, 64, 64]) for pendulum-like levels and for pick-and-place's widest
 //! levels (state 20; level 0 with a 7-wide subgoal and 4 actions, the top level with the 3-wide
-//! end goal proposing 7-wide subgoals), and one greedy single-sample action. Target: an update
-//! within 1.5 ms on one core.
+//! end goal proposing 7-wide subgoals), the pendulum-like level on two threads, and one greedy
+//! single-sample action. Target: an update within 1.5 ms on one core.
 
 use std::hint::black_box;
 
@@ -64,6 +64,17 @@ fn update(c: &mut Criterion) {
             format!("batch1024_h64x3_state3_goal2_action{action}"),
             |b| b.iter(|| black_box(learner.update(black_box(&batch)))),
         );
+    }
+    // The same level's update shared among two threads (the caller's and one worker); the
+    // weights are the same as on one.
+    {
+        let mut rng = Rng::seed_from(1);
+        let mut learner = LevelLearner::new(config(1), &mut rng);
+        learner.set_threads(2);
+        let batch = batch(learner.config().dims, &mut rng);
+        group.bench_function("batch1024_h64x3_state3_goal2_action1_threads2", |b| {
+            b.iter(|| black_box(learner.update(black_box(&batch))))
+        });
     }
     for (name, dims) in [
         (

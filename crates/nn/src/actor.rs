@@ -219,15 +219,16 @@ impl ActorNet {
     /// Sets `grads` to the parameter gradient, given the loss gradient with respect to the actions
     /// in `ws.output_grad_mut()` (consumed).
     ///
-    /// With `penalty = Some((pre, c))` (`pre` from [`ActorNet::forward_batch_keeping_pre`]) the
-    /// loss also holds `c sum(x^2) / (action x batch)`, the pre-activations' mean square, whose
-    /// gradient `2 c x / (action x batch)` still pulls a saturated output back where the
-    /// action gradient through `tanh` has vanished.
+    /// With `penalty = Some((pre, c, samples))` (`pre` from
+    /// [`ActorNet::forward_batch_keeping_pre`]) the loss also holds `c sum(x^2) / (action x
+    /// samples)`, the pre-activations' mean square over a minibatch of `samples` (of which `ws`
+    /// may hold a part), whose gradient `2 c x / (action x samples)` still pulls a saturated
+    /// output back where the action gradient through `tanh` has vanished.
     pub(crate) fn backward_batch(
         &self,
         ws: &mut MlpWorkspace,
         grads: &mut MlpGrads,
-        penalty: Option<(&[f32], f32)>,
+        penalty: Option<(&[f32], f32, usize)>,
     ) {
         let a = self.dims.action;
         let (t, g) = ws.output_and_grad_mut();
@@ -236,13 +237,13 @@ impl ActorNet {
                 *g *= s * (1.0 - t * t);
             }
         }
-        if let Some((pre, c)) = penalty {
+        if let Some((pre, c, samples)) = penalty {
             assert_eq!(
                 pre.len(),
                 g.len(),
                 "actor: pre-activations of another batch"
             );
-            let k = 2.0 * c / g.len() as f32;
+            let k = 2.0 * c / (a * samples) as f32;
             for (g, x) in g.iter_mut().zip(pre) {
                 *g += k * x;
             }
@@ -312,7 +313,7 @@ mod tests {
         }
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(actor.mlp());
-        actor.backward_batch(&mut ws, &mut grads, penalty.map(|c| (pre.as_slice(), c)));
+        actor.backward_batch(&mut ws, &mut grads, penalty.map(|c| (pre.as_slice(), c, n)));
 
         let sizes = actor.mlp().sizes();
         let mut x = vec![0.0; (DIMS.state + DIMS.goal) * n];

@@ -63,6 +63,46 @@ pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
     c.gemm(1.0, &a, &b, 0.0);
 }
 
+/// Single-core GFLOP/s of this crate's `sgemm` path on the three products a hidden
+/// `width x width` layer does on `batch` samples (forward `W x`, input gradient `W^T dz`, weight
+/// gradient `dz x^T`), one after the other, repeated on the calling thread for at least
+/// `min_seconds`: the peak an update of such layers could reach on one core.
+///
+/// Panics if `width` or `batch` is below the `sgemm` path's smallest dimension (6).
+pub fn hidden_layer_sgemm_gflops(width: usize, batch: usize, min_seconds: f64) -> f64 {
+    assert!(
+        fits_sgemm(width, width, batch),
+        "sgemm peak: width {width} and batch {batch} must be at least {SGEMM_MIN_DIM}"
+    );
+    let fill = |len: usize| -> Vec<f32> { (0..len).map(|i| (i % 17) as f32 * 0.01).collect() };
+    let (w, x, dz) = (
+        fill(width * width),
+        fill(width * batch),
+        fill(width * batch),
+    );
+    let (mut out, mut grad) = (vec![0.0; width * batch], vec![0.0; width * width]);
+    let mut round = || {
+        let w = MatRef::col_major(&w, width, width);
+        sgemm(&mut out, w, MatRef::col_major(&x, width, batch));
+        sgemm(&mut out, w.t(), MatRef::col_major(&dz, width, batch));
+        sgemm(
+            &mut grad,
+            MatRef::col_major(&dz, width, batch),
+            MatRef::col_major(&x, width, batch).t(),
+        );
+    };
+    round();
+    let start = std::time::Instant::now();
+    let mut rounds = 0u64;
+    while rounds == 0 || start.elapsed().as_secs_f64() < min_seconds {
+        round();
+        rounds += 1;
+    }
+    let flops = 3.0 * 2.0 * (width * width * batch) as f64 * rounds as f64;
+    std::hint::black_box((&out, &grad));
+    flops / start.elapsed().as_secs_f64() / 1e9
+}
+
 /// `y += s * x`.
 #[inline]
 pub(crate) fn axpy(y: &mut [f32], s: f32, x: &[f32]) {

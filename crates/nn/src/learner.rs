@@ -1,6 +1,11 @@
 //! One HAC level's learner: actor, critic, their optimisers, optional target networks, and the
 //! DDPG-style update of docs/ALGORITHM.md ("Learning, per level").
 
+use std::ops::Range;
+use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
@@ -52,6 +57,30 @@ impl LearnerConfig {
             actor_preactivation_l2: agent.actor_preactivation_l2,
             exact_critic_slope: agent.exact_critic_slope,
         }
+    }
+
+    /// The floating-point operations of one [`LevelLearner::update`] on `batch` samples,
+    /// counted from the layer shapes as the update does its matrix products (2 per
+    /// multiply-add; the element-wise work, a few operations per activation, is left out):
+    ///
+    /// - targets: actor and critic forward on the next states;
+    /// - critic step: critic forward, then backward with weight gradients and input gradients
+    ///   for every layer but the first;
+    /// - actor step: actor and critic forward, critic backward without weight gradients but
+    ///   with input gradients down to the action rows of its first layer, then actor backward
+    ///   with weight gradients and input gradients for every layer but the first.
+    pub fn update_flops(&self, batch: usize) -> u64 {
+        // Multiply-adds per sample of one product with every layer of `sizes`, and the same
+        // without the first layer.
+        let macs = |sizes: &[usize]| sizes.windows(2).map(|w| w[0] * w[1]).sum::<usize>();
+        let above_first = |sizes: &[usize]| macs(&sizes[1..]);
+        let (actor, critic) = (self.actor_sizes(), self.critic_sizes());
+        let forward = 2 * macs(&actor) + 3 * macs(&critic);
+        let critic_step_backward = macs(&critic) + above_first(&critic);
+        let action_grad = above_first(&critic) + self.dims.action * critic[1];
+        let actor_backward = macs(&actor) + above_first(&actor);
+        let per_sample = forward + critic_step_backward + action_grad + actor_backward;
+        2 * per_sample as u64 * batch as u64
     }
 
     fn actor_sizes(&self) -> Vec<usize> {
@@ -116,7 +145,32 @@ struct Targets {
     tau: f32,
 }
 
+/// The most chunks an update cuts its minibatch into, and so the most threads it can use. Each
+/// chunk's gradient is computed on its own, possibly on another thread, and the chunk gradients
+/// are summed in chunk order. The number of chunks depends on the minibatch's size alone (see
+/// [`MIN_CHUNK_SAMPLES`]), not on the number of threads, so neither do the weights: they are
+/// bit-identical for any [`LevelLearner::set_threads`].
+pub const GRADIENT_CHUNKS: usize = 8;
+
+/// The fewest samples of a chunk (but for a minibatch of fewer): a minibatch of `n` samples is
+/// cut into `n / MIN_CHUNK_SAMPLES` chunks, at least 1 and at most [`GRADIENT_CHUNKS`] (the
+/// reference's 1024 into 4). Smaller chunks would let more threads share an update, but each
+/// costs a little on its own (its matrix products repack the weights, and its gradient is added
+/// to the others), which a single thread pays too.
+pub const MIN_CHUNK_SAMPLES: usize = 256;
+
+/// The number of chunks of a minibatch of `len` samples.
+fn chunk_count(len: usize) -> usize {
+    (len / MIN_CHUNK_SAMPLES).clamp(1, GRADIENT_CHUNKS)
+}
+
+/// The samples of chunk `k` of `chunks` in a minibatch of `len` samples.
+fn chunk_samples(k: usize, chunks: usize, len: usize) -> Range<usize> {
+    k * len / chunks..(k + 1) * len / chunks
+}
+
 /// A batch's fields, checked to hold `len` samples and cut to exactly that.
+#[derive(Debug, Clone, Copy)]
 struct Fields<'a> {
     len: usize,
     states: &'a [f32],
@@ -149,30 +203,368 @@ impl<'a> Fields<'a> {
             terminals: field(&batch.terminals, 1, "terminals"),
         }
     }
+
+    /// The samples `samples` of these fields, which have widths `d`.
+    fn part(&self, d: LevelDims, samples: Range<usize>) -> Self {
+        let (a, b) = (samples.start, samples.end);
+        Self {
+            len: samples.len(),
+            states: &self.states[a * d.state..b * d.state],
+            next_states: &self.next_states[a * d.state..b * d.state],
+            goals: &self.goals[a * d.goal..b * d.goal],
+            actions: &self.actions[a * d.action..b * d.action],
+            rewards: &self.rewards[a..b],
+            terminals: &self.terminals[a..b],
+        }
+    }
 }
 
-/// Learns one level's actor and critic from minibatches. Owns every buffer an update needs, so
-/// updates at a steady batch size allocate nothing in this crate.
+/// The minibatch of the update under way, copied so that worker threads can read it. Its
+/// buffers only grow, so copying a minibatch no larger than an earlier one allocates nothing.
+#[derive(Debug, Clone, Default)]
+struct BatchCopy {
+    len: usize,
+    states: Vec<f32>,
+    next_states: Vec<f32>,
+    goals: Vec<f32>,
+    actions: Vec<f32>,
+    rewards: Vec<f32>,
+    terminals: Vec<f32>,
+}
+
+impl BatchCopy {
+    fn set(&mut self, from: &Fields<'_>) {
+        self.len = from.len;
+        let pairs = [
+            (&mut self.states, from.states),
+            (&mut self.next_states, from.next_states),
+            (&mut self.goals, from.goals),
+            (&mut self.actions, from.actions),
+            (&mut self.rewards, from.rewards),
+            (&mut self.terminals, from.terminals),
+        ];
+        for (to, from) in pairs {
+            to.clear();
+            to.extend_from_slice(from);
+        }
+    }
+
+    fn fields(&self) -> Fields<'_> {
+        Fields {
+            len: self.len,
+            states: &self.states,
+            next_states: &self.next_states,
+            goals: &self.goals,
+            actions: &self.actions,
+            rewards: &self.rewards,
+            terminals: &self.terminals,
+        }
+    }
+}
+
+/// What the chunks of an update read: the configuration, the networks and the minibatch.
+/// Worker threads hold it only while they work on an update's chunks; between the parts of an
+/// update (and between updates) the learner is its only owner and changes it in place.
 #[derive(Debug, Clone)]
-pub struct LevelLearner {
+struct Model {
     config: LearnerConfig,
     actor: ActorNet,
     critic: CriticNet,
-    actor_opt: Adam,
-    critic_opt: Adam,
     targets: Option<Targets>,
+    batch: BatchCopy,
+}
+
+/// One chunk's buffers and results.
+#[derive(Debug, Clone)]
+struct Chunk {
     actor_ws: MlpWorkspace,
     critic_ws: MlpWorkspace,
     actor_grads: MlpGrads,
     critic_grads: MlpGrads,
-    /// The critic's regression targets for the current batch.
+    /// The critic's regression targets for the chunk's samples.
     y: Vec<f32>,
     /// The actor's pre-activations in the actor step, kept only for the penalty.
     actor_pre: Vec<f32>,
+    /// Sums over the chunk's samples of the target, of the critic's squared error and of `Q`
+    /// before the critic step, and of `Q(s, g, pi(s, g))` in the actor step.
+    target_sum: f32,
+    sq_err_sum: f32,
+    q_sum: f32,
+    policy_q_sum: f32,
+}
+
+impl Chunk {
+    fn new(actor: &ActorNet, critic: &CriticNet) -> Self {
+        Self {
+            actor_ws: MlpWorkspace::new(actor.mlp(), 0),
+            critic_ws: MlpWorkspace::new(critic.mlp(), 0),
+            actor_grads: MlpGrads::new(actor.mlp()),
+            critic_grads: MlpGrads::new(critic.mlp()),
+            y: Vec::new(),
+            actor_pre: Vec::new(),
+            target_sum: 0.0,
+            sq_err_sum: 0.0,
+            q_sum: 0.0,
+            policy_q_sum: 0.0,
+        }
+    }
+}
+
+/// The two parts of an update that run chunk by chunk.
+#[derive(Debug, Clone, Copy)]
+enum Part {
+    /// The targets `y` and the critic's gradient.
+    Critic,
+    /// The actor's gradient through the updated critic.
+    Actor,
+}
+
+/// Locks a chunk. A lock is poisoned only by a panic in an update, which the learner's owner
+/// has seen already (the thread that started that update panicked too).
+fn lock(chunk: &Mutex<Chunk>) -> MutexGuard<'_, Chunk> {
+    chunk
+        .lock()
+        .expect("learner: a chunk was left by a panicked update")
+}
+
+/// The model, to change: between the parts of an update no worker thread holds it.
+fn exclusive(model: &mut Arc<Model>) -> &mut Model {
+    Arc::get_mut(model).expect("learner: a worker thread still holds the model")
+}
+
+impl Model {
+    /// Runs `part` of the update on chunk `k` of `chunks`.
+    fn run_chunk(&self, part: Part, chunk: &mut Chunk, k: usize, chunks: usize) {
+        let all = self.batch.fields();
+        let samples = all.part(self.config.dims, chunk_samples(k, chunks, all.len));
+        chunk.actor_ws.set_batch(samples.len);
+        chunk.critic_ws.set_batch(samples.len);
+        match part {
+            Part::Critic => {
+                self.set_targets(chunk, &samples);
+                self.critic_gradient(chunk, &samples, all.len);
+            }
+            Part::Actor => self.actor_gradient(chunk, &samples, all.len),
+        }
+    }
+
+    /// Sets `chunk.y` to the clipped bootstrap targets of `samples`, and `chunk.target_sum`.
+    fn set_targets(&self, chunk: &mut Chunk, samples: &Fields<'_>) {
+        let exact = self.config.exact_critic_slope;
+        let (actor, critic) = match &self.targets {
+            Some(t) => (&t.actor, &t.critic),
+            None => (&self.actor, &self.critic),
+        };
+        let Chunk {
+            actor_ws,
+            critic_ws,
+            y,
+            ..
+        } = chunk;
+        actor.fill_input(actor_ws, samples.next_states, samples.goals);
+        actor.forward_batch(actor_ws);
+        critic.fill_state_goal(critic_ws, samples.next_states, samples.goals);
+        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
+        actor.write_actions(actor_ws, critic_ws.input_mut(), rows, action_row);
+        critic.forward_batch(critic_ws, exact);
+
+        let (h, gamma) = (self.config.horizon, self.config.gamma);
+        y.resize(samples.len, 0.0);
+        let mut sum = 0.0;
+        for (((y, &q), &r), &terminal) in y
+            .iter_mut()
+            .zip(critic_ws.output())
+            .zip(samples.rewards)
+            .zip(samples.terminals)
+        {
+            *y = (r + gamma * (1.0 - terminal) * q).clamp(-h, 0.0);
+            sum += *y;
+        }
+        chunk.target_sum = sum;
+    }
+
+    /// Sets `chunk.critic_grads` to this chunk's part of the gradient of the critic's mean
+    /// squared error to `y` over a minibatch of `len` samples, and the chunk's sums of squared
+    /// errors and of `Q`.
+    fn critic_gradient(&self, chunk: &mut Chunk, samples: &Fields<'_>, len: usize) {
+        let exact = self.config.exact_critic_slope;
+        let critic = &self.critic;
+        let ws = &mut chunk.critic_ws;
+        critic.fill_state_goal(ws, samples.states, samples.goals);
+        critic.fill_actions(ws, samples.actions);
+        critic.forward_batch(ws, exact);
+        let inv_n = 1.0 / len as f32;
+        let (mut sq_err_sum, mut q_sum) = (0.0, 0.0);
+        let (q, dq) = ws.output_and_grad_mut();
+        for ((dq, &q), &y) in dq.iter_mut().zip(q).zip(&chunk.y) {
+            let err = q - y;
+            sq_err_sum += err * err;
+            q_sum += q;
+            *dq = 2.0 * err * inv_n;
+        }
+        critic.backward_batch(ws, Some(&mut chunk.critic_grads), false);
+        (chunk.sq_err_sum, chunk.q_sum) = (sq_err_sum, q_sum);
+    }
+
+    /// Sets `chunk.actor_grads` to this chunk's part of the gradient of the actor's loss
+    /// `-mean Q(s, g, pi(s, g))` over a minibatch of `len` samples, which reaches the actor
+    /// through the critic's action input, and the chunk's sum of `Q`.
+    ///
+    /// With `actor_preactivation_l2 = c > 0` the loss also holds `c` times the mean square of
+    /// the actor's pre-`tanh` outputs (not part of the returned value). Where the critic is flat
+    /// (its pre-sigmoid output beyond about 100, where even its exact slope underflows to 0) and
+    /// the actor sits at a corner of its bounds, the first term's gradient is exactly zero and
+    /// only this one moves the actor.
+    ///
+    /// Runs after [`Model::critic_gradient`] on the same chunk, whose state and goal rows it
+    /// reuses.
+    fn actor_gradient(&self, chunk: &mut Chunk, samples: &Fields<'_>, len: usize) {
+        let exact = self.config.exact_critic_slope;
+        let (actor, critic) = (&self.actor, &self.critic);
+        let c = self.config.actor_preactivation_l2;
+        let Chunk {
+            actor_ws,
+            critic_ws,
+            actor_grads,
+            actor_pre,
+            ..
+        } = chunk;
+        actor.fill_input(actor_ws, samples.states, samples.goals);
+        if c > 0.0 {
+            actor.forward_batch_keeping_pre(actor_ws, actor_pre);
+        } else {
+            actor.forward_batch(actor_ws);
+        }
+        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
+        actor.write_actions(actor_ws, critic_ws.input_mut(), rows, action_row);
+        critic.forward_batch(critic_ws, exact);
+        let inv_n = 1.0 / len as f32;
+        let mut q_sum = 0.0;
+        let (q, dq) = critic_ws.output_and_grad_mut();
+        for (dq, &q) in dq.iter_mut().zip(q) {
+            q_sum += q;
+            *dq = -inv_n;
+        }
+        critic.backward_batch(critic_ws, None, true);
+        actor_ws
+            .output_grad_mut()
+            .copy_from_slice(critic_ws.input_grad());
+        let penalty = (c > 0.0).then_some((actor_pre.as_slice(), c, len));
+        actor.backward_batch(actor_ws, actor_grads, penalty);
+        chunk.policy_q_sum = q_sum;
+    }
+}
+
+/// A part of an update for a worker thread: chunks `chunks` of `of`.
+struct Job {
+    part: Part,
+    model: Arc<Model>,
+    chunks: Range<usize>,
+    of: usize,
+}
+
+/// A worker thread of a level's learner, waiting for jobs.
+struct Worker {
+    jobs: SyncSender<Job>,
+    done: Receiver<()>,
+    thread: JoinHandle<()>,
+}
+
+/// The worker threads of one learner: they live as long as it (or until its thread count
+/// changes), so an update starts no thread.
+struct Pool {
+    workers: Vec<Worker>,
+}
+
+impl Pool {
+    fn new(workers: usize, chunks: &Arc<[Mutex<Chunk>]>) -> Self {
+        let workers = (0..workers)
+            .map(|_| {
+                let (jobs, job_rx) = mpsc::sync_channel::<Job>(1);
+                let (done_tx, done) = mpsc::sync_channel(1);
+                let chunks = Arc::clone(chunks);
+                let thread = std::thread::Builder::new()
+                    .name("learner-worker".into())
+                    .spawn(move || {
+                        while let Ok(job) = job_rx.recv() {
+                            for k in job.chunks.clone() {
+                                job.model
+                                    .run_chunk(job.part, &mut lock(&chunks[k]), k, job.of);
+                            }
+                            // The model is released before the learner hears the job is done.
+                            drop(job);
+                            if done_tx.send(()).is_err() {
+                                break;
+                            }
+                        }
+                    })
+                    .expect("learner: spawning a worker thread");
+                Worker { jobs, done, thread }
+            })
+            .collect();
+        Self { workers }
+    }
+}
+
+impl Drop for Pool {
+    fn drop(&mut self) {
+        for Worker { jobs, thread, .. } in self.workers.drain(..) {
+            drop(jobs);
+            // A worker that panicked did so in an update, whose caller panicked with it.
+            let _ = thread.join();
+        }
+    }
+}
+
+impl std::fmt::Debug for Pool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pool")
+            .field("workers", &self.workers.len())
+            .finish()
+    }
+}
+
+/// Learns one level's actor and critic from minibatches. Owns every buffer an update needs, so
+/// updates at a steady batch size allocate nothing in this crate.
+///
+/// An update cuts its minibatch into chunks (by its size alone, see [`MIN_CHUNK_SAMPLES`]) and
+/// sums their gradients in a fixed order; with [`LevelLearner::set_threads`] the chunks are shared among that many
+/// threads (the caller's and workers started once), with bit-identical results.
+#[derive(Debug)]
+pub struct LevelLearner {
+    model: Arc<Model>,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    /// The chunks' buffers; a worker thread locks the chunks it was given.
+    chunks: Arc<[Mutex<Chunk>]>,
+    /// The summed gradients.
+    actor_grads: MlpGrads,
+    critic_grads: MlpGrads,
+    pool: Option<Pool>,
+}
+
+impl Clone for LevelLearner {
+    /// An independent copy of everything an update reads and changes, which updates on the
+    /// calling thread (it starts no worker; [`LevelLearner::set_threads`] gives it more): a
+    /// checkpoint's snapshot is a clone that never updates. Scratch buffers are not copied.
+    fn clone(&self) -> Self {
+        let mut copy = Self::assemble(
+            self.model.config.clone(),
+            self.model.actor.clone(),
+            self.model.critic.clone(),
+        );
+        exclusive(&mut copy.model)
+            .targets
+            .clone_from(&self.model.targets);
+        copy.actor_opt = self.actor_opt.clone();
+        copy.critic_opt = self.critic_opt.clone();
+        copy
+    }
 }
 
 impl LevelLearner {
     /// A freshly initialised learner: the actor, then the critic, draw their weights from `rng`.
+    /// It updates on the calling thread until [`set_threads`](Self::set_threads) says otherwise.
     ///
     /// Panics if the bounds do not match `dims.action`, a width is zero, or `horizon <= 0.067`.
     pub fn new(config: LearnerConfig, rng: &mut Rng) -> Self {
@@ -191,32 +583,54 @@ impl LevelLearner {
         Self {
             actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
             critic_opt: Adam::new(config.critic_lr, lens(critic.mlp())),
-            actor_ws: MlpWorkspace::new(actor.mlp(), 0),
-            critic_ws: MlpWorkspace::new(critic.mlp(), 0),
+            chunks: (0..GRADIENT_CHUNKS)
+                .map(|_| Mutex::new(Chunk::new(&actor, &critic)))
+                .collect(),
             actor_grads: MlpGrads::new(actor.mlp()),
             critic_grads: MlpGrads::new(critic.mlp()),
-            y: Vec::new(),
-            actor_pre: Vec::new(),
-            targets,
-            config,
-            actor,
-            critic,
+            model: Arc::new(Model {
+                config,
+                actor,
+                critic,
+                targets,
+                batch: BatchCopy::default(),
+            }),
+            pool: None,
         }
+    }
+
+    /// Shares each update among `threads` threads: the caller's and `threads - 1` workers that
+    /// this learner starts now and keeps (at most [`GRADIENT_CHUNKS`] in all; more would have
+    /// nothing to do). The weights do not depend on it.
+    ///
+    /// Panics if `threads` is 0.
+    pub fn set_threads(&mut self, threads: usize) {
+        assert!(threads > 0, "learner: at least one thread updates");
+        let threads = threads.min(GRADIENT_CHUNKS);
+        if threads != self.threads() {
+            self.pool = None;
+            self.pool = (threads > 1).then(|| Pool::new(threads - 1, &self.chunks));
+        }
+    }
+
+    /// The number of threads an update uses (see [`set_threads`](Self::set_threads)).
+    pub fn threads(&self) -> usize {
+        self.pool.as_ref().map_or(1, |p| p.workers.len() + 1)
     }
 
     /// The configuration the learner was built from.
     pub fn config(&self) -> &LearnerConfig {
-        &self.config
+        &self.model.config
     }
 
     /// The current actor; clone it to hand the policy to a rollout or ship its weights.
     pub fn actor(&self) -> &ActorNet {
-        &self.actor
+        &self.model.actor
     }
 
     /// The current critic.
     pub fn critic(&self) -> &CriticNet {
-        &self.critic
+        &self.model.critic
     }
 
     /// Updates done so far.
@@ -226,7 +640,7 @@ impl LevelLearner {
 
     /// The greedy action `pi(state, goal)`, written into `out`.
     pub fn act(&mut self, state: &[f32], goal: &[f32], out: &mut [f32]) {
-        self.actor.act(state, goal, out);
+        exclusive(&mut self.model).actor.act(state, goal, out);
     }
 
     /// One critic step, then one actor step, on `batch`.
@@ -235,28 +649,97 @@ impl LevelLearner {
     /// networks when enabled), clipped to `[-H, 0]` and held constant. Actor: minimise
     /// `-mean Q(s, g, pi(s, g))` under the just-updated critic, whose parameters stay fixed.
     ///
+    /// Each gradient is the sum, in chunk order, of the gradients of the minibatch's chunks (see
+    /// [`MIN_CHUNK_SAMPLES`]), computed on as many threads as [`set_threads`](Self::set_threads)
+    /// gave.
+    ///
     /// Panics if the batch is empty, its dimensions are not this level's, or a field is short.
     pub fn update(&mut self, batch: &Batch) -> UpdateStats {
         assert_eq!(
-            batch.dims, self.config.dims,
+            batch.dims,
+            self.config().dims,
             "learner: batch dimensions differ from the level's"
         );
-        let batch = Fields::new(batch);
-        self.actor_ws.set_batch(batch.len);
-        self.critic_ws.set_batch(batch.len);
-        self.y.resize(batch.len, 0.0);
-        let mean_target = self.set_targets(&batch);
-        let (critic_loss, mean_q) = self.critic_step(&batch);
-        let actor_loss = self.actor_step(&batch);
-        if let Some(t) = &mut self.targets {
-            t.actor.mlp_mut().polyak_toward(self.actor.mlp(), t.tau);
-            t.critic.mlp_mut().polyak_toward(self.critic.mlp(), t.tau);
+        let fields = Fields::new(batch);
+        let n = fields.len;
+        exclusive(&mut self.model).batch.set(&fields);
+        let chunks = chunk_count(n);
+        let inv_n = 1.0 / n as f32;
+
+        self.run(Part::Critic, chunks);
+        let (mut target_sum, mut sq_err_sum, mut q_sum) = (0.0, 0.0, 0.0);
+        for (k, chunk) in self.chunks[..chunks].iter().enumerate() {
+            let chunk = lock(chunk);
+            if k == 0 {
+                self.critic_grads.copy_from(&chunk.critic_grads);
+            } else {
+                self.critic_grads.add(&chunk.critic_grads);
+            }
+            target_sum += chunk.target_sum;
+            sq_err_sum += chunk.sq_err_sum;
+            q_sum += chunk.q_sum;
+        }
+        let model = exclusive(&mut self.model);
+        let grads = self.critic_grads.tensors();
+        self.critic_opt
+            .step(model.critic.mlp_mut().tensors_mut().zip(grads));
+
+        self.run(Part::Actor, chunks);
+        let mut policy_q_sum = 0.0;
+        for (k, chunk) in self.chunks[..chunks].iter().enumerate() {
+            let chunk = lock(chunk);
+            if k == 0 {
+                self.actor_grads.copy_from(&chunk.actor_grads);
+            } else {
+                self.actor_grads.add(&chunk.actor_grads);
+            }
+            policy_q_sum += chunk.policy_q_sum;
+        }
+        let model = exclusive(&mut self.model);
+        let grads = self.actor_grads.tensors();
+        self.actor_opt
+            .step(model.actor.mlp_mut().tensors_mut().zip(grads));
+
+        if let Some(t) = &mut model.targets {
+            t.actor.mlp_mut().polyak_toward(model.actor.mlp(), t.tau);
+            t.critic.mlp_mut().polyak_toward(model.critic.mlp(), t.tau);
         }
         UpdateStats {
-            critic_loss,
-            actor_loss,
-            mean_q,
-            mean_target,
+            critic_loss: sq_err_sum * inv_n,
+            actor_loss: -policy_q_sum * inv_n,
+            mean_q: q_sum * inv_n,
+            mean_target: target_sum / n as f32,
+        }
+    }
+
+    /// Runs `part` of an update on its `chunks` chunks: the first share on this thread, the
+    /// others on the workers, each share a run of consecutive chunks.
+    fn run(&mut self, part: Part, chunks: usize) {
+        let workers = self.pool.as_ref().map_or(&[][..], |p| &p.workers[..]);
+        let threads = (workers.len() + 1).min(chunks);
+        let share = |t: usize| t * chunks / threads..(t + 1) * chunks / threads;
+        let helpers = &workers[..threads - 1];
+        for (t, worker) in helpers.iter().enumerate() {
+            let job = Job {
+                part,
+                model: Arc::clone(&self.model),
+                chunks: share(t + 1),
+                of: chunks,
+            };
+            worker
+                .jobs
+                .send(job)
+                .expect("learner: a worker thread has stopped");
+        }
+        for k in share(0) {
+            self.model
+                .run_chunk(part, &mut lock(&self.chunks[k]), k, chunks);
+        }
+        for worker in helpers {
+            worker
+                .done
+                .recv()
+                .expect("learner: a worker thread panicked");
         }
     }
 
@@ -294,8 +777,8 @@ impl LevelLearner {
             return Some(Diverged { what, value });
         }
         let networks = [
-            ("actor parameter", self.actor.mlp()),
-            ("critic parameter", self.critic.mlp()),
+            ("actor parameter", self.model.actor.mlp()),
+            ("critic parameter", self.model.critic.mlp()),
         ];
         for (what, mlp) in networks {
             let bad = mlp
@@ -314,11 +797,12 @@ impl LevelLearner {
     fn state_mut(&mut self) -> ([&mut u64; 2], Vec<&mut [f32]>) {
         let (actor_steps, actor_moments) = self.actor_opt.state_mut();
         let (critic_steps, critic_moments) = self.critic_opt.state_mut();
-        let mut slices: Vec<&mut [f32]> = self.actor.mlp_mut().tensors_mut().collect();
-        slices.extend(self.critic.mlp_mut().tensors_mut());
+        let model = exclusive(&mut self.model);
+        let mut slices: Vec<&mut [f32]> = model.actor.mlp_mut().tensors_mut().collect();
+        slices.extend(model.critic.mlp_mut().tensors_mut());
         slices.extend(actor_moments);
         slices.extend(critic_moments);
-        if let Some(t) = &mut self.targets {
+        if let Some(t) = &mut model.targets {
             slices.extend(t.actor.mlp_mut().tensors_mut());
             slices.extend(t.critic.mlp_mut().tensors_mut());
         }
@@ -329,15 +813,16 @@ impl LevelLearner {
     pub fn save(&self, backup: &mut LearnerBackup) {
         let (actor_steps, actor_moments) = self.actor_opt.state();
         let (critic_steps, critic_moments) = self.critic_opt.state();
-        let targets = self
+        let model = &self.model;
+        let targets = model
             .targets
             .iter()
             .flat_map(|t| t.actor.mlp().tensors().chain(t.critic.mlp().tensors()));
-        let slices = self
+        let slices = model
             .actor
             .mlp()
             .tensors()
-            .chain(self.critic.mlp().tensors())
+            .chain(model.critic.mlp().tensors())
             .chain(actor_moments)
             .chain(critic_moments)
             .chain(targets);
@@ -364,101 +849,6 @@ impl LevelLearner {
         assert_eq!(at, backup.values.len(), "learner: backup of another shape");
     }
 
-    /// Sets `self.y` to the clipped bootstrap targets; returns their mean.
-    fn set_targets(&mut self, batch: &Fields<'_>) -> f32 {
-        let exact = self.config.exact_critic_slope;
-        let (actor, critic) = match &self.targets {
-            Some(t) => (&t.actor, &t.critic),
-            None => (&self.actor, &self.critic),
-        };
-        actor.fill_input(&mut self.actor_ws, batch.next_states, batch.goals);
-        actor.forward_batch(&mut self.actor_ws);
-        critic.fill_state_goal(&mut self.critic_ws, batch.next_states, batch.goals);
-        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
-        actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
-        critic.forward_batch(&mut self.critic_ws, exact);
-
-        let (h, gamma) = (self.config.horizon, self.config.gamma);
-        let mut sum = 0.0;
-        for (((y, &q), &r), &terminal) in self
-            .y
-            .iter_mut()
-            .zip(self.critic_ws.output())
-            .zip(batch.rewards)
-            .zip(batch.terminals)
-        {
-            *y = (r + gamma * (1.0 - terminal) * q).clamp(-h, 0.0);
-            sum += *y;
-        }
-        sum / batch.len as f32
-    }
-
-    /// One Adam step on the critic's mean squared error to `self.y`; returns that error and the
-    /// mean `Q`, both from before the step.
-    fn critic_step(&mut self, batch: &Fields<'_>) -> (f32, f32) {
-        let exact = self.config.exact_critic_slope;
-        let critic = &mut self.critic;
-        critic.fill_state_goal(&mut self.critic_ws, batch.states, batch.goals);
-        critic.fill_actions(&mut self.critic_ws, batch.actions);
-        critic.forward_batch(&mut self.critic_ws, exact);
-        let inv_n = 1.0 / batch.len as f32;
-        let (mut sq_err_sum, mut q_sum) = (0.0, 0.0);
-        let (q, dq) = self.critic_ws.output_and_grad_mut();
-        for ((dq, &q), &y) in dq.iter_mut().zip(q).zip(&self.y) {
-            let err = q - y;
-            sq_err_sum += err * err;
-            q_sum += q;
-            *dq = 2.0 * err * inv_n;
-        }
-        critic.backward_batch(&mut self.critic_ws, Some(&mut self.critic_grads), false);
-        let grads = self.critic_grads.tensors();
-        self.critic_opt
-            .step(critic.mlp_mut().tensors_mut().zip(grads));
-        (sq_err_sum * inv_n, q_sum * inv_n)
-    }
-
-    /// One Adam step on the actor's loss `-mean Q(s, g, pi(s, g))`, whose gradient reaches the
-    /// actor through the critic's action input; returns that loss from before the step.
-    ///
-    /// With `actor_preactivation_l2 = c > 0` the loss also holds `c` times the mean square of
-    /// the actor's pre-`tanh` outputs (not part of the returned value). Where the critic is flat
-    /// (its pre-sigmoid output beyond about 100, where even its exact slope underflows to 0) and
-    /// the actor sits at a corner of its bounds, the first term's gradient is exactly zero and
-    /// only this one moves the actor.
-    ///
-    /// Runs after [`LevelLearner::critic_step`], whose state and goal rows it reuses.
-    fn actor_step(&mut self, batch: &Fields<'_>) -> f32 {
-        let exact = self.config.exact_critic_slope;
-        let (actor, critic) = (&mut self.actor, &self.critic);
-        let c = self.config.actor_preactivation_l2;
-        actor.fill_input(&mut self.actor_ws, batch.states, batch.goals);
-        if c > 0.0 {
-            actor.forward_batch_keeping_pre(&mut self.actor_ws, &mut self.actor_pre);
-        } else {
-            actor.forward_batch(&mut self.actor_ws);
-        }
-        let (rows, action_row) = (critic.mlp().input_dim(), critic.action_rows().start);
-        actor.write_actions(&self.actor_ws, self.critic_ws.input_mut(), rows, action_row);
-        critic.forward_batch(&mut self.critic_ws, exact);
-        let inv_n = 1.0 / batch.len as f32;
-        let mut q_sum = 0.0;
-        let (q, dq) = self.critic_ws.output_and_grad_mut();
-        for (dq, &q) in dq.iter_mut().zip(q) {
-            q_sum += q;
-            *dq = -inv_n;
-        }
-        critic.backward_batch(&mut self.critic_ws, None, true);
-        self.actor_ws
-            .output_grad_mut()
-            .copy_from_slice(self.critic_ws.input_grad());
-        let penalty = (c > 0.0).then_some((self.actor_pre.as_slice(), c));
-        actor.backward_batch(&mut self.actor_ws, &mut self.actor_grads, penalty);
-        let grads = self.actor_grads.tensors();
-        self.actor_opt
-            .step(actor.mlp_mut().tensors_mut().zip(grads));
-        -q_sum * inv_n
-    }
-
     /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in
     /// [`ActorNet::to_safetensors`]), critic (`critic.*`), both optimisers (`actor_adam.*`,
     /// `critic_adam.*`) and, when enabled, the target networks (`target_actor.*`,
@@ -466,11 +856,11 @@ impl LevelLearner {
     pub fn to_safetensors(&self) -> Vec<u8> {
         let mut out = TensorWriter::default();
         out.meta("format".into(), FORMAT);
-        self.actor.write("actor.", &mut out);
-        self.critic.write("critic.", &mut out);
+        self.model.actor.write("actor.", &mut out);
+        self.model.critic.write("critic.", &mut out);
         self.actor_opt.write("actor_adam.", &mut out);
         self.critic_opt.write("critic_adam.", &mut out);
-        if let Some(t) = &self.targets {
+        if let Some(t) = &self.model.targets {
             t.actor.write("target_actor.", &mut out);
             t.critic.write("target_critic.", &mut out);
         }
@@ -489,10 +879,11 @@ impl LevelLearner {
         let mut learner = Self::assemble(config, actor, critic);
         learner.actor_opt.read("actor_adam.", &file)?;
         learner.critic_opt.read("critic_adam.", &file)?;
-        if let Some(t) = &mut learner.targets {
+        let model = exclusive(&mut learner.model);
+        if let Some(t) = &mut model.targets {
             t.actor = ActorNet::read("target_actor.", &file)?;
             t.critic = CriticNet::read("target_critic.", &file)?;
-            check_matches(&learner.config, &t.actor, &t.critic)?;
+            check_matches(&model.config, &t.actor, &t.critic)?;
         }
         Ok(learner)
     }
@@ -616,7 +1007,12 @@ mod tests {
 
             // An exploding step: the same learner with a learning rate of 1e30.
             let mut exploding = guarded.clone();
-            let lens: Vec<usize> = exploding.actor.mlp().tensors().map(<[f32]>::len).collect();
+            let lens: Vec<usize> = exploding
+                .actor()
+                .mlp()
+                .tensors()
+                .map(<[f32]>::len)
+                .collect();
             exploding.actor_opt = Adam::new(1e30, lens);
             let before = exploding.to_safetensors();
             let e = exploding
@@ -663,7 +1059,7 @@ mod tests {
 
     /// `mean Q(s, g, pi(s, g))` over the batch, with the learner's current actor and critic.
     fn policy_value(learner: &LevelLearner, batch: &Batch) -> f32 {
-        let (actor, critic) = (&learner.actor, &learner.critic);
+        let (actor, critic) = (learner.actor(), learner.critic());
         let mut actor_ws = MlpWorkspace::new(actor.mlp(), batch.len);
         let mut critic_ws = MlpWorkspace::new(critic.mlp(), batch.len);
         actor.fill_input(&mut actor_ws, &batch.states, &batch.goals);
@@ -751,9 +1147,19 @@ mod tests {
             },
             &mut rng,
         );
-        let actor_bias = learner.actor.mlp_mut().tensors_mut().last().unwrap();
+        let actor_bias = exclusive(&mut learner.model)
+            .actor
+            .mlp_mut()
+            .tensors_mut()
+            .last()
+            .unwrap();
         actor_bias.fill(40.0);
-        let critic_bias = learner.critic.mlp_mut().tensors_mut().last().unwrap();
+        let critic_bias = exclusive(&mut learner.model)
+            .critic
+            .mlp_mut()
+            .tensors_mut()
+            .last()
+            .unwrap();
         critic_bias.fill(1000.0);
         learner
     }
@@ -778,7 +1184,7 @@ mod tests {
         let mut rng = Rng::seed_from(36);
         let batch = random_batch(&mut rng, 64);
         let mut learner = stuck_at_a_corner(0.0);
-        let actor = learner.actor.mlp().clone();
+        let actor = learner.actor().mlp().clone();
         for _ in 0..50 {
             let stats = learner.update(&batch);
             assert_eq!(stats.actor_loss, 10.0, "the critic reads exactly -H");
@@ -786,7 +1192,7 @@ mod tests {
         assert_eq!(mean_action(&mut learner, &batch), [2.0, 1.0]);
         assert!(
             learner
-                .actor
+                .actor()
                 .mlp()
                 .tensors()
                 .zip(actor.tensors())
@@ -819,10 +1225,10 @@ mod tests {
         let mut rng = Rng::seed_from(33);
         let tau = 0.1;
         let mut learner = LevelLearner::new(config(Some(tau)), &mut rng);
-        let before = learner.critic.mlp().clone();
+        let before = learner.critic().mlp().clone();
         learner.update(&random_batch(&mut rng, 64));
-        let targets = learner.targets.as_ref().expect("targets enabled");
-        let after = learner.critic.mlp();
+        let targets = learner.model.targets.as_ref().expect("targets enabled");
+        let after = learner.critic().mlp();
         for ((t, old), new) in targets
             .critic
             .mlp()
@@ -834,7 +1240,7 @@ mod tests {
                 assert!((t - (old + tau * (new - old))).abs() < 1e-6);
             }
         }
-        assert_ne!(targets.actor.mlp(), learner.actor.mlp());
+        assert_ne!(targets.actor.mlp(), learner.actor().mlp());
     }
 
     #[test]
@@ -851,6 +1257,157 @@ mod tests {
             assert_eq!(run(7), run(7));
             assert_ne!(run(7), run(8));
         }
+    }
+
+    /// A learner's whole state after `updates` updates on minibatches of `len` samples, with
+    /// `threads` threads.
+    fn trained(config: LearnerConfig, threads: usize, updates: usize, len: usize) -> Vec<u8> {
+        let mut learner = LevelLearner::new(config, &mut Rng::seed_from(41));
+        learner.set_threads(threads);
+        assert_eq!(learner.threads(), threads);
+        let mut data = Rng::seed_from(42);
+        let mut stats = Vec::new();
+        for _ in 0..updates {
+            stats.push(learner.update(&random_batch(&mut data, len)));
+        }
+        let mut state = learner.to_safetensors();
+        // The statistics too, bit for bit.
+        for s in stats {
+            for v in [s.critic_loss, s.actor_loss, s.mean_q, s.mean_target] {
+                state.extend(v.to_bits().to_le_bytes());
+            }
+        }
+        state
+    }
+
+    #[test]
+    fn weights_are_bit_identical_for_any_thread_count() {
+        let with_everything = LearnerConfig {
+            actor_preactivation_l2: 1e-3,
+            exact_critic_slope: true,
+            ..config(Some(0.05))
+        };
+        for cfg in [config(None), with_everything] {
+            // 8 chunks of 256; 5 uneven chunks; a single chunk.
+            for len in [2048, 1300, 100] {
+                let one = trained(cfg.clone(), 1, 6, len);
+                for threads in [2, 3] {
+                    assert!(
+                        one == trained(cfg.clone(), threads, 6, len),
+                        "{threads} threads, batch {len}, {cfg:?}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn chunked_gradients_sum_to_the_whole_batch_gradient() {
+        let cfg = LearnerConfig {
+            actor_preactivation_l2: 1e-2,
+            ..config(Some(0.05))
+        };
+        let mut rng = Rng::seed_from(43);
+        let mut learner = LevelLearner::new(cfg, &mut rng);
+        // Move the networks away from their initial values first.
+        for _ in 0..5 {
+            learner.update(&random_batch(&mut rng, 256));
+        }
+        let batch = random_batch(&mut rng, 203);
+        let fields = Fields::new(&batch);
+        exclusive(&mut learner.model).batch.set(&fields);
+        let model = &learner.model;
+        let (actor, critic) = (model.actor.clone(), model.critic.clone());
+        let mut whole = Chunk::new(&actor, &critic);
+        model.run_chunk(Part::Critic, &mut whole, 0, 1);
+        model.run_chunk(Part::Actor, &mut whole, 0, 1);
+        let mut chunks: Vec<Chunk> = (0..GRADIENT_CHUNKS)
+            .map(|_| Chunk::new(&actor, &critic))
+            .collect();
+        for part in [Part::Critic, Part::Actor] {
+            for (k, chunk) in chunks.iter_mut().enumerate() {
+                model.run_chunk(part, chunk, k, GRADIENT_CHUNKS);
+            }
+        }
+        let (mut critic_sum, mut actor_sum) = (
+            chunks[0].critic_grads.clone(),
+            chunks[0].actor_grads.clone(),
+        );
+        for chunk in &chunks[1..] {
+            critic_sum.add(&chunk.critic_grads);
+            actor_sum.add(&chunk.actor_grads);
+        }
+        let pairs = [
+            ("critic", &critic_sum, &whole.critic_grads),
+            ("actor", &actor_sum, &whole.actor_grads),
+        ];
+        for (what, sum, whole) in pairs {
+            for (t, (got, want)) in sum.tensors().zip(whole.tensors()).enumerate() {
+                let scale = want.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+                for (g, w) in got.iter().zip(want) {
+                    assert!(
+                        (g - w).abs() <= 1e-4 * scale,
+                        "{what} tensor {t}: {g} vs {w} (largest {scale})"
+                    );
+                }
+            }
+        }
+        let y: Vec<f32> = chunks.iter().flat_map(|c| c.y.iter().copied()).collect();
+        assert_eq!(y, whole.y, "targets are per sample");
+        let sum = |f: fn(&Chunk) -> f32| chunks.iter().map(f).sum::<f32>();
+        for (what, got, want) in [
+            ("targets", sum(|c| c.target_sum), whole.target_sum),
+            ("squared errors", sum(|c| c.sq_err_sum), whole.sq_err_sum),
+            ("Q", sum(|c| c.q_sum), whole.q_sum),
+            ("policy Q", sum(|c| c.policy_q_sum), whole.policy_q_sum),
+        ] {
+            assert!(
+                (got - want).abs() <= 1e-4 * want.abs().max(1.0),
+                "{what}: {got} vs {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_clone_updates_on_one_thread_and_continues_identically() {
+        let mut rng = Rng::seed_from(44);
+        let mut learner = LevelLearner::new(config(Some(0.05)), &mut rng);
+        learner.set_threads(3);
+        learner.update(&random_batch(&mut rng, 64));
+        let mut copy = learner.clone();
+        assert_eq!(copy.threads(), 1);
+        assert_eq!(copy.to_safetensors(), learner.to_safetensors());
+        for _ in 0..3 {
+            let batch = random_batch(&mut rng, 900);
+            assert_eq!(learner.update(&batch), copy.update(&batch));
+        }
+        assert_eq!(learner.to_safetensors(), copy.to_safetensors());
+        learner.set_threads(100);
+        assert_eq!(learner.threads(), GRADIENT_CHUNKS);
+    }
+
+    #[test]
+    fn update_flops_count_the_products_of_the_reference_network() {
+        // Pendulum's level 0 at the reference size: actor 5-64-64-64-1, critic 6-64-64-64-1.
+        let cfg = LearnerConfig {
+            dims: LevelDims {
+                state: 3,
+                goal: 2,
+                action: 1,
+            },
+            action_bounds: Bounds::symmetric(&[2.0]),
+            hidden: vec![64, 64, 64],
+            ..config(None)
+        };
+        let actor = 5 * 64 + 2 * 64 * 64 + 64;
+        let critic = 6 * 64 + 2 * 64 * 64 + 64;
+        let hidden_and_out = 2 * 64 * 64 + 64;
+        let macs = 2 * actor + 3 * critic // forward passes
+            + critic + hidden_and_out // critic step backward
+            + hidden_and_out + 64 // action gradient
+            + actor + hidden_and_out; // actor backward
+        assert_eq!(macs, 85_120);
+        assert_eq!(cfg.update_flops(1024), 2 * 85_120 * 1024);
     }
 
     #[test]

@@ -7,7 +7,10 @@
 //!   [`ActorNet::act`] for rollouts, safetensors round trip for shipping weights to remote actors.
 //! - [`critic`]: [`CriticNet`], `Q(s, g, a)` bounded to `[-H, 0]`, initially optimistic.
 //! - [`learner`]: [`LevelLearner`], one level's DDPG-style update (critic step, then actor step
-//!   through the updated critic), optional target networks, whole-state checkpoints.
+//!   through the updated critic), optional target networks, whole-state checkpoints. The
+//!   minibatch is cut into up to [`GRADIENT_CHUNKS`] chunks (by its size alone) whose gradients
+//!   may be computed on several threads and are summed in a fixed order, so the weights do not
+//!   depend on the thread count.
 //! - [`td3`]: [`Td3Learner`], TD3's twin-critic update (HIRO's learner at both levels).
 //! - [`policy`]: [`ExportedPolicy`], every level's actor in one self-contained file for use
 //!   elsewhere.
@@ -35,8 +38,10 @@ pub use actor::ActorNet;
 pub use adam::Adam;
 pub use critic::CriticNet;
 pub use error::NnError;
+pub use kernels::hidden_layer_sgemm_gflops;
 pub use learner::{
-    Diverged, LearnerBackup, LearnerConfig, LevelLearner, PARAMETER_LIMIT, UpdateStats,
+    Diverged, GRADIENT_CHUNKS, LearnerBackup, LearnerConfig, LevelLearner, MIN_CHUNK_SAMPLES,
+    PARAMETER_LIMIT, UpdateStats,
 };
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
 pub use policy::ExportedPolicy;

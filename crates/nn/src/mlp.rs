@@ -380,6 +380,28 @@ impl MlpGrads {
             .iter()
             .flat_map(|l| [l.w.as_slice(), l.b.as_slice()])
     }
+
+    fn tensors_mut(&mut self) -> impl Iterator<Item = &mut [f32]> {
+        self.layers
+            .iter_mut()
+            .flat_map(|l| [l.w.as_mut_slice(), l.b.as_mut_slice()])
+    }
+
+    /// `self <- other` (gradients of the same network).
+    pub(crate) fn copy_from(&mut self, other: &MlpGrads) {
+        for (t, o) in self.tensors_mut().zip(other.tensors()) {
+            t.copy_from_slice(o);
+        }
+    }
+
+    /// `self <- self + other`, element by element (gradients of the same network).
+    pub(crate) fn add(&mut self, other: &MlpGrads) {
+        for (t, o) in self.tensors_mut().zip(other.tensors()) {
+            for (t, o) in t.iter_mut().zip(o) {
+                *t += o;
+            }
+        }
+    }
 }
 
 /// Buffers for evaluating and differentiating one [`Mlp`] on a batch. They are sized on the first

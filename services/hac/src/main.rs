@@ -8,7 +8,8 @@
 //! - `hac export`: a trained run's greedy policy as one self-contained safetensors file.
 //! - `hac learner`, `hac actor`: the daemons (the same as `hac-learner`, `hac-actor`).
 //! - `hac env list | describe | rollout`: inspect and hand-step the built-in environments.
-//! - `hac bench ...`: ingest throughput, weights fan-out, many connections held for a long time.
+//! - `hac bench ...`: ingest throughput, weights fan-out, many connections held for a long time,
+//!   a learner under attack, one level's update speed on 1..N threads (sizing a learner host).
 //! - `hac learner`, `hac actor`: the daemons of a distributed run; `hac status`: a running
 //!   learner's (or actor's) status as a table or JSON, live with `--watch` ([`status_cmd`]);
 //!   `hac health`: one gRPC health check, for container health checks.
@@ -23,6 +24,7 @@ mod bench_connections;
 mod bench_grpc;
 mod bench_hostile;
 mod bench_shm;
+mod bench_update;
 mod env_cmd;
 mod experiment;
 mod export;
@@ -83,7 +85,7 @@ enum Command {
     #[command(subcommand)]
     Bench(BenchCommand),
     /// Serve a distributed run: the learner trains on what actors stream to it over gRPC.
-    Learner(hac_learner_service::LearnerArgs),
+    Learner(Box<hac_learner_service::LearnerArgs>),
     /// Run one actor of a distributed run: connects to a learner service and streams rollouts.
     Actor(hac_actor_service::ActorArgs),
     /// Show a running learner's status (or an actor's, with --actor): run, per-level updates,
@@ -178,6 +180,43 @@ enum BenchCommand {
     /// crashed, answered wrongly, lost count of a message, published a non-finite weight, or
     /// (attack) the run missed --stop-at.
     Hostile(HostileArgs),
+    /// One level's learner update (critic and actor step) on 1..N threads: milliseconds per
+    /// update, the update's FLOP count (its matrix products, from the layer shapes), GFLOP/s,
+    /// and this machine's single-core sgemm on the same shapes measured now, with the ratio.
+    /// The level is built from the environment's default configuration. For sizing a learner
+    /// host (docs/OPERATIONS.md).
+    Update(UpdateArgs),
+}
+
+/// `hac bench update` arguments.
+#[derive(Debug, Args)]
+struct UpdateArgs {
+    /// Built-in environment (see `hac env list`).
+    #[arg(long, default_value = "pendulum")]
+    env: String,
+    /// Levels of the hierarchy (the level's dimensions depend on it).
+    #[arg(long, default_value_t = 2)]
+    levels: usize,
+    /// The level measured, 0 the lowest.
+    #[arg(long, default_value_t = 0)]
+    level: usize,
+    /// Minibatch size [default: the environment's batch_size].
+    #[arg(long)]
+    batch: Option<usize>,
+    /// Hidden layer widths, comma-separated, e.g. 64,64,64 [default: the environment's
+    /// hidden_layers].
+    #[arg(long, value_delimiter = ',')]
+    hidden: Option<Vec<usize>>,
+    /// Thread counts to measure, comma-separated, e.g. 1,2,4 [default: 1 to the cores
+    /// available].
+    #[arg(long, value_delimiter = ',')]
+    threads: Vec<usize>,
+    /// Seconds of updates per thread count (after a short warm-up).
+    #[arg(long, default_value_t = 3.0)]
+    seconds: f64,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 /// `hac bench hostile` arguments.
@@ -463,6 +502,18 @@ fn main() {
             sample_every: Duration::from_secs(sample_every),
             json,
         }),
+        Command::Bench(BenchCommand::Update(args)) => {
+            bench_update::run_and_print(&bench_update::UpdateBench {
+                env: args.env,
+                levels: args.levels,
+                level: args.level,
+                batch: args.batch,
+                hidden: args.hidden,
+                threads: args.threads,
+                seconds: args.seconds,
+                json: args.json,
+            })
+        }
         Command::Bench(BenchCommand::Hostile(args)) => {
             bench_hostile::run_and_print(&bench_hostile::HostileBench {
                 env: args.env,
@@ -489,7 +540,7 @@ fn main() {
         Command::Env(EnvCommand::Rollout { env, seed, state }) => {
             env_cmd::rollout(&env, seed, state.as_deref())
         }
-        Command::Learner(args) => hac_learner_service::run(args),
+        Command::Learner(args) => hac_learner_service::run(*args),
         Command::Actor(args) => hac_actor_service::run(args),
         Command::Status(args) => status_cmd::run(&args),
     };

@@ -986,6 +986,60 @@ fn bench_connections_holds_actors_against_a_learner_process() {
 }
 
 #[test]
+fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
+    let o = hac(&[
+        "bench",
+        "update",
+        "--batch",
+        "256",
+        "--threads",
+        "1,2",
+        "--seconds",
+        "0.3",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Pendulum's level 0 of 2 with its default hidden layers (3 x 64): 85,120 multiply-adds per
+    // sample (counted by hand in hac-nn's tests), 2 FLOP each.
+    assert_eq!(
+        report["hidden"],
+        serde_json::json!([64, 64, 64]),
+        "{report}"
+    );
+    let dims = [&report["state"], &report["goal"], &report["action"]];
+    assert_eq!(dims, [3, 2, 1], "{report}");
+    assert_eq!(report["flops_per_update"], 2 * 85_120 * 256, "{report}");
+    assert_eq!(report["chunks"], 1, "{report}");
+    let rows = report["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{report}");
+    assert!(
+        report["sgemm_peak_gflops"].as_f64().unwrap() > 0.1,
+        "{report}"
+    );
+    for (row, threads) in rows.iter().zip([1, 2]) {
+        assert_eq!(row["threads"], threads, "{report}");
+        assert!(row["updates"].as_u64().unwrap() > 0, "{report}");
+        let ms = row["ms_per_update"].as_f64().unwrap();
+        let gflops = row["gflops"].as_f64().unwrap();
+        let flops = report["flops_per_update"].as_f64().unwrap();
+        assert!(
+            (gflops - flops / ms / 1e6).abs() < 1e-6 * gflops,
+            "{report}"
+        );
+    }
+    assert_eq!(rows[0]["speedup"], 1.0, "{report}");
+
+    let o = hac(&["bench", "update", "--level", "2"]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o.stderr).contains("--level 2 is not a level of a 2-level hierarchy"),
+        "{}",
+        text(&o.stderr)
+    );
+}
+
+#[test]
 fn an_address_may_be_host_port_and_an_error_says_each_cause_once() {
     // Port 1 on loopback: nothing listens there.
     let o = hac(&["health", "127.0.0.1:1", "--timeout", "2"]);

@@ -126,6 +126,11 @@ pub struct LearnerArgs {
     /// worth of updates (the rate limiter's error buffer) [default: 2].
     #[arg(long, value_parser = at_least_one)]
     pub error_buffer_episodes: Option<f64>,
+    /// Threads updating the networks, shared among the levels (which update in parallel; each
+    /// level gets at least one): size it from `hac bench update`. The weights do not depend on
+    /// it [default: the cores available to the process].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    pub learner_threads: Option<u64>,
     /// Seconds to keep serving after the run finishes (by itself, or on SIGINT/SIGTERM), so that
     /// every actor receives the final weights and stops; health is NOT_SERVING meanwhile.
     #[arg(long, value_name = "SECS", default_value = "2", value_parser = seconds)]
@@ -241,6 +246,10 @@ impl LearnerArgs {
             options.error_buffer_episodes = x;
         }
         options.max_actor_messages_per_second = self.ops.max_actor_messages_per_second;
+        if let Some(n) = self.learner_threads {
+            options.learner_threads =
+                usize::try_from(n).context("invalid value for --learner-threads")?;
+        }
         options.validate()?;
         Ok(options)
     }

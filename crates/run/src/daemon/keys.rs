@@ -16,6 +16,7 @@ pub const LEARNER: &[&str] = &[
     "turn_lease",
     "forget_actors_after",
     "error_buffer_episodes",
+    "learner_threads",
     "grace_period",
     "drain_timeout",
     "metrics_listen",

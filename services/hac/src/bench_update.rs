@@ -1,0 +1,223 @@
+//! `hac bench update`: how fast one level's learner updates, on 1..N threads, against this
+//! machine's own single-core `sgemm` on the same shapes: what sizing a learner host needs.
+//!
+//! The level's learner is built from the environment's default configuration for the chosen
+//! number of levels (batch size and hidden layers, overridable), as the learner service builds
+//! it; a fixed random minibatch is learned from repeatedly. Each thread count starts from the
+//! same initial learner (a clone, with its own worker threads), warms up, then updates for
+//! `--seconds`. The update's work is counted from the layer shapes
+//! ([`hac_nn::LearnerConfig::update_flops`]); the `sgemm` peak is measured in the same
+//! invocation on the hidden layers' three products ([`hac_nn::hidden_layer_sgemm_gflops`]).
+
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+use hac_core::{Batch, EnvSpec, Rng};
+use hac_nn::{LearnerConfig, LevelLearner};
+use serde::Serialize;
+
+/// `hac bench update` settings.
+#[derive(Debug, Clone)]
+pub struct UpdateBench {
+    pub env: String,
+    pub levels: usize,
+    pub level: usize,
+    /// Minibatch size; `None`: the environment's default.
+    pub batch: Option<usize>,
+    /// Hidden layer widths; `None`: the environment's default.
+    pub hidden: Option<Vec<usize>>,
+    /// Thread counts to measure; empty: 1 to the cores available.
+    pub threads: Vec<usize>,
+    pub seconds: f64,
+    pub json: bool,
+}
+
+/// One thread count's measurement.
+#[derive(Debug, Clone, Serialize)]
+pub struct ThreadsRow {
+    pub threads: usize,
+    pub updates: u64,
+    pub ms_per_update: f64,
+    pub gflops: f64,
+    /// `gflops` over the single-core `sgemm` peak.
+    pub of_sgemm_peak: f64,
+    /// Updates per second over those of the first row.
+    pub speedup: f64,
+}
+
+/// `hac bench update` result.
+#[derive(Debug, Clone, Serialize)]
+pub struct UpdateReport {
+    pub env: String,
+    pub levels: usize,
+    pub level: usize,
+    pub state: usize,
+    pub goal: usize,
+    pub action: usize,
+    pub batch: usize,
+    pub hidden: Vec<usize>,
+    /// Cores available to this process.
+    pub cores: usize,
+    /// Chunks the minibatch is cut into: the most threads one update can use.
+    pub chunks: usize,
+    pub flops_per_update: u64,
+    /// Single-core GFLOP/s of `sgemm` on the widest hidden layer's products at this batch.
+    pub sgemm_peak_gflops: f64,
+    pub rows: Vec<ThreadsRow>,
+}
+
+/// A minibatch of uniform states, goals and actions; a fifth of the samples reached their goal.
+fn random_batch(config: &LearnerConfig, len: usize, rng: &mut Rng) -> Batch {
+    let mut b = Batch::zeros(config.dims, len);
+    for field in [
+        &mut b.states,
+        &mut b.next_states,
+        &mut b.goals,
+        &mut b.actions,
+    ] {
+        field.iter_mut().for_each(|v| *v = rng.uniform(-1.0, 1.0));
+    }
+    for (r, t) in b.rewards.iter_mut().zip(&mut b.terminals) {
+        (*r, *t) = if rng.bernoulli(0.2) {
+            (0.0, 1.0)
+        } else {
+            (-1.0, 0.0)
+        };
+    }
+    b
+}
+
+/// Runs the bench.
+pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
+    let env = hac_envs::make(&bench.env)?;
+    if bench.levels == 0 || bench.level >= bench.levels {
+        bail!(
+            "--level {} is not a level of a {}-level hierarchy",
+            bench.level,
+            bench.levels
+        );
+    }
+    let mut agent = env.default_config(bench.levels);
+    if let Some(batch) = bench.batch {
+        agent.batch_size = batch;
+    }
+    if let Some(hidden) = &bench.hidden {
+        agent.hidden_layers.clone_from(hidden);
+    }
+    if agent.batch_size == 0 || agent.hidden_layers.contains(&0) {
+        bail!("the batch and every hidden layer need at least one unit");
+    }
+    let spec: &EnvSpec = env.spec();
+    let config = LearnerConfig::for_level(&agent, spec, bench.level);
+    let cores = hac_learner::available_threads();
+    let threads = if bench.threads.is_empty() {
+        (1..=cores).collect()
+    } else {
+        bench.threads.clone()
+    };
+    if threads
+        .iter()
+        .any(|&t| t == 0 || t > hac_nn::GRADIENT_CHUNKS)
+    {
+        bail!(
+            "--threads: each count must be 1 to {} (an update's chunks)",
+            hac_nn::GRADIENT_CHUNKS
+        );
+    }
+    let batch_size = agent.batch_size;
+    let widest = agent.hidden_layers.iter().copied().max().unwrap_or(0);
+    let sgemm_peak_gflops = if widest >= 6 && batch_size >= 6 {
+        hac_nn::hidden_layer_sgemm_gflops(widest, batch_size, bench.seconds.min(2.0))
+    } else {
+        f64::NAN
+    };
+    let flops = config.update_flops(batch_size);
+    let mut rng = Rng::seed_from(1);
+    let fresh = LevelLearner::new(config.clone(), &mut rng);
+    let batch = random_batch(&config, batch_size, &mut rng);
+    let mut rows: Vec<ThreadsRow> = Vec::new();
+    for &t in &threads {
+        let mut learner = fresh.clone();
+        learner.set_threads(t);
+        let warm_up = Instant::now();
+        while warm_up.elapsed().as_secs_f64() < 0.2 {
+            learner.update(&batch);
+        }
+        let start = Instant::now();
+        let mut updates = 0u64;
+        while updates == 0 || start.elapsed().as_secs_f64() < bench.seconds {
+            std::hint::black_box(learner.update(&batch));
+            updates += 1;
+        }
+        let seconds = start.elapsed().as_secs_f64();
+        let per_second = updates as f64 / seconds;
+        let gflops = flops as f64 * per_second / 1e9;
+        let speedup = rows
+            .first()
+            .map_or(1.0, |first| per_second * first.ms_per_update / 1e3);
+        rows.push(ThreadsRow {
+            threads: t,
+            updates,
+            ms_per_update: 1e3 / per_second,
+            gflops,
+            of_sgemm_peak: gflops / sgemm_peak_gflops,
+            speedup,
+        });
+    }
+    Ok(UpdateReport {
+        env: bench.env.clone(),
+        levels: bench.levels,
+        level: bench.level,
+        state: config.dims.state,
+        goal: config.dims.goal,
+        action: config.dims.action,
+        batch: batch_size,
+        hidden: agent.hidden_layers.clone(),
+        cores,
+        chunks: (batch_size / hac_nn::MIN_CHUNK_SAMPLES).clamp(1, hac_nn::GRADIENT_CHUNKS),
+        flops_per_update: flops,
+        sgemm_peak_gflops,
+        rows,
+    })
+}
+
+/// Runs the bench and prints its report (one JSON object with `json`).
+pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
+    let r = run(bench)?;
+    if bench.json {
+        println!("{}", serde_json::to_string(&r)?);
+        return Ok(());
+    }
+    let hidden: Vec<String> = r.hidden.iter().map(usize::to_string).collect();
+    println!(
+        "{} level {} of {} (state {}, goal {}, action {}), batch {}, hidden {}: {:.1} MFLOP per \
+         update (matrix products) in {} chunks; single-core sgemm on the same shapes: {:.1} \
+         GFLOP/s; {} cores",
+        r.env,
+        r.level,
+        r.levels,
+        r.state,
+        r.goal,
+        r.action,
+        r.batch,
+        hidden.join("x"),
+        r.flops_per_update as f64 / 1e6,
+        r.chunks,
+        r.sgemm_peak_gflops,
+        r.cores
+    );
+    println!("| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for row in &r.rows {
+        println!(
+            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x |",
+            row.threads,
+            row.ms_per_update,
+            1e3 / row.ms_per_update,
+            row.gflops,
+            row.of_sgemm_peak,
+            row.speedup
+        );
+    }
+    Ok(())
+}
