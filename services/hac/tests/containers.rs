@@ -966,28 +966,38 @@ fn shared_memory(image: &Image) {
         Some(FAULT_RUN),
     );
     let started = Instant::now();
-    stack.up(1);
+    // Two trainers: the learner's one subscriber serves both (it reads in rounds of one
+    // message per actor; reading in the subscriber's order once left the second at 0).
+    stack.up(2);
     let trainers = stack.containers("hac-actor");
-    assert_eq!(trainers.len(), 1, "{trainers:?}");
+    assert_eq!(trainers.len(), 2, "{trainers:?}");
     // The actors have the learner's host name: their ids are `hac-shm-host-<pid>`.
-    let (trainer, _) = wait_for(
-        "a trainer ingesting over shared memory",
+    let (ingesting, _) = wait_for(
+        "both trainers ingesting over shared memory",
         Duration::from_secs(120),
         || stack.tails(),
         || {
-            actors(&stack.status()?).into_iter().find(|a| {
-                a["role"] == "trainer" && a["transport"] == "shm" && u(a, "stored_through") > 0
-            })
+            let over_shm: Vec<_> = actors(&stack.status()?)
+                .into_iter()
+                .filter(|a| {
+                    a["role"] == "trainer" && a["transport"] == "shm" && u(a, "stored_through") > 0
+                })
+                .collect();
+            (over_shm.len() == 2).then_some(over_shm)
         },
     );
-    let log = container_log(&trainers[0]);
-    assert!(log.contains(common::USING_SHM), "{log}");
-    eprintln!(
-        "shared memory: trainer {} ingesting over shm {:.1} s after `up` (stored through {})",
-        trainer["actor_id"],
-        started.elapsed().as_secs_f64(),
-        u(&trainer, "stored_through")
-    );
+    for trainer in &trainers {
+        let log = container_log(trainer);
+        assert!(log.contains(common::USING_SHM), "{log}");
+    }
+    for trainer in &ingesting {
+        eprintln!(
+            "shared memory: trainer {} ingesting over shm {:.1} s after `up` (stored through {})",
+            trainer["actor_id"],
+            started.elapsed().as_secs_f64(),
+            u(trainer, "stored_through")
+        );
+    }
 }
 
 fn eight_trainers(image: &Image) {
