@@ -76,7 +76,6 @@ pub struct Td3Learner {
     critic_grads: MlpGrads,
     /// The critics' regression targets for the current batch.
     y: Vec<f32>,
-    critic_updates: u64,
     /// The actor loss of the last actor step.
     last_actor_loss: f32,
 }
@@ -104,7 +103,6 @@ impl Td3Learner {
             actor_grads: MlpGrads::new(actor.mlp()),
             critic_grads: MlpGrads::new(&critics[0]),
             y: Vec::new(),
-            critic_updates: 0,
             last_actor_loss: 0.0,
             target_actor: actor.clone(),
             target_critics: critics.clone(),
@@ -126,7 +124,7 @@ impl Td3Learner {
 
     /// Critic updates done so far.
     pub fn updates(&self) -> u64 {
-        self.critic_updates
+        self.critic_opts[0].steps()
     }
 
     /// One TD3 update on `batch`: both critics regress on
@@ -159,9 +157,8 @@ impl Td3Learner {
         self.y.resize(n, 0.0);
         let mean_target = self.set_targets(batch, &next_goals[..n * d.goal], rng);
         let (critic_loss, mean_q) = self.critic_steps(batch);
-        self.critic_updates += 1;
         if self
-            .critic_updates
+            .updates()
             .is_multiple_of(self.config.policy_delay.max(1))
         {
             self.last_actor_loss = self.actor_step(batch);

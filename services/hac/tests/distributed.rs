@@ -8,7 +8,7 @@ use std::process::Child;
 use std::time::{Duration, Instant};
 mod common;
 
-use common::{Processes, all_logs, count, hac, listening_addr, summary};
+use common::{Processes, all_logs, count, hac, listening_addr, log, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
 
@@ -69,7 +69,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
     eprintln!("mountain-car, 3 trainers and an evaluator: {best} after {episodes} episodes");
     let summary = std::fs::read_to_string(out.join("summary.json")).unwrap();
     assert!(summary.contains("\"episodes_ingested\""), "{summary}");
-    let learner_log = std::fs::read_to_string(dir.join("learner.log")).unwrap();
+    let learner_log = log(&dir, "learner");
     assert_eq!(
         learner_log.matches("actor registered").count(),
         4,
@@ -249,7 +249,7 @@ fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
         count(&s, "episodes") >= 80,
         "training went on to the budget: {s}"
     );
-    let log = std::fs::read_to_string(dir.join("learner.log")).unwrap();
+    let log = log(&dir, "learner");
     assert_eq!(
         log.matches("actor registered actor=trainer-1").count(),
         2,
