@@ -34,7 +34,8 @@ impl HiroSink for Kept {
         TransitionSink::push(&mut self.low, 0, t);
     }
 
-    fn push_high(&mut self, t: &HighTransition<'_>) {
+    fn push_high(&mut self, h: &HighTransition<'_>) {
+        let t = &h.transition;
         self.high.push(High {
             state: t.state.to_vec(),
             action: t.action.to_vec(),
@@ -42,9 +43,9 @@ impl HiroSink for Kept {
             next_state: t.next_state.to_vec(),
             goal: t.goal.to_vec(),
             terminal: t.terminal,
-            states: t.steps.states.to_vec(),
-            achieved: t.steps.achieved.to_vec(),
-            actions: t.steps.actions.to_vec(),
+            states: h.steps.states.to_vec(),
+            achieved: h.steps.achieved.to_vec(),
+            actions: h.steps.actions.to_vec(),
         });
     }
 }

@@ -26,18 +26,12 @@ use crate::{Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, within_
 /// A high-level transition with the low-level steps it spanned, borrowed from the rollout.
 #[derive(Debug, Clone, Copy)]
 pub struct HighTransition<'a> {
-    /// The state at the decision, `s_t`.
-    pub state: &'a [f32],
-    /// The relative goal proposed (with exploration noise, clipped to the box).
-    pub action: &'a [f32],
-    /// The sum of the task's rewards over the steps.
-    pub reward: f32,
-    /// The state after the last step, `s_{t+k}`.
-    pub next_state: &'a [f32],
-    /// The end goal (the high level's goal).
-    pub goal: &'a [f32],
-    /// The end goal was reached, or the environment ended the episode, at `next_state`.
-    pub terminal: bool,
+    /// `(s_t, g_t, R, s_{t+k}, end goal, terminal)`: the state at the decision, the relative
+    /// goal proposed (with exploration noise, clipped to the box), the sum of the task's rewards
+    /// over the steps, the state after the last one, the end goal (the high level's goal), and
+    /// whether the end goal was reached or the environment ended the episode there (kind
+    /// [`TransitionKind::HindsightAction`]: the action taken).
+    pub transition: Transition<'a>,
     /// The `k <= c` low-level steps.
     pub steps: LowLevelSteps<'a>,
 }
@@ -197,12 +191,15 @@ impl HiroRollout {
             let ended = success || terminated || steps >= self.spec.max_actions;
             if train && (ended || seg.len == self.c) {
                 sink.push_high(&HighTransition {
-                    state: &seg.state,
-                    action: &seg.action,
-                    reward: seg.reward,
-                    next_state,
-                    goal: &self.end_goal,
-                    terminal: success || terminated,
+                    transition: Transition {
+                        kind: TransitionKind::HindsightAction,
+                        state: &seg.state,
+                        action: &seg.action,
+                        reward: seg.reward,
+                        next_state,
+                        goal: &self.end_goal,
+                        terminal: success || terminated,
+                    },
                     steps: LowLevelSteps {
                         states: &seg.states,
                         achieved: &seg.achieved,
