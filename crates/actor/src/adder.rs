@@ -117,6 +117,7 @@ mod tests {
                 next_state: &[x + 1.0, x + 1.0],
                 goal: &[x],
                 terminal: x > 2.0,
+                extra: &[],
             },
         );
     }

@@ -12,12 +12,19 @@
 //! - actions lie in the level's action space: `action_bounds` at level 0, the subgoal space
 //!   above;
 //! - rewards are ones the level can produce: `0` (goal reached), `-1` (missed) or `-H` (a
-//!   subgoal-testing penalty), HAC's three values.
+//!   subgoal-testing penalty), HAC's three values;
+//! - extra values ([`crate::Transition::extra`]) have the width the level stores: none for HAC.
+//!
+//! HIRO's levels ([`TransitionLimits::for_hiro_level`]) differ where HIRO does: relative goals,
+//! the low level's distance rewards, the high level's sums of `-1` over up to `c` steps, and
+//! the high level's low-level steps, whose states, projections and actions are checked like the
+//! fields above.
 //!
 //! Every box is widened by [`MARGIN`] of its width on each side (plus a hair for rounding), so
 //! an honest actor whose physics differs in the last bits is never refused. A box the
 //! environment leaves empty (unknown) is not checked.
 
+use crate::hiro::{LowLevelSteps, StepsError, StepsShape};
 use crate::{BatchRef, Bounds, EnvSpec};
 
 /// How far outside a box a value may lie, as a fraction of the box's width on each side.
@@ -32,7 +39,33 @@ pub struct TransitionLimits {
     state: Bounds,
     goal: Bounds,
     action: Bounds,
-    rewards: [f32; 3],
+    rewards: Rewards,
+    extra: Extra,
+}
+
+/// The rewards a level produces.
+#[derive(Debug, Clone, PartialEq)]
+enum Rewards {
+    /// HAC: exactly these values.
+    OneOf([f32; 3]),
+    /// HIRO's high level: whole numbers from `-max` to 0.
+    Whole { max: f32 },
+    /// HIRO's low level: any value from `-max` to 0.
+    Within { max: f32 },
+}
+
+/// What a level stores beside each transition.
+#[derive(Debug, Clone, PartialEq)]
+enum Extra {
+    None,
+    /// HIRO's high level: its low-level steps, packed; states, projections and actions within
+    /// these boxes.
+    Steps {
+        shape: StepsShape,
+        state: Bounds,
+        achieved: Bounds,
+        action: Bounds,
+    },
 }
 
 /// A value outside what the level can produce. The message names the field and the index in
@@ -62,12 +95,36 @@ pub enum LimitError {
         value: f32,
         penalty: f32,
     },
+    #[error("batch.rewards[{index}] = {value:e} is not a reward this level produces ({what})")]
+    RewardOutside {
+        index: usize,
+        value: f32,
+        what: String,
+    },
+    #[error(
+        "batch.extra has {got} values per transition, this level stores {expected} (HAC's \
+         levels none, HIRO's high level its low-level steps)"
+    )]
+    ExtraWidth { got: usize, expected: usize },
+    #[error("batch.extra of transition {index}: {source}")]
+    Steps {
+        index: usize,
+        #[source]
+        source: StepsError,
+    },
+    #[error("low-level steps of transition {index}: {source}")]
+    StepOutOfBounds {
+        index: usize,
+        #[source]
+        source: Box<LimitError>,
+    },
 }
 
 fn field_meaning(field: &str) -> &'static str {
     match field {
-        "states" | "next_states" => "state",
+        "states" | "next_states" | "extra.states" => "state",
         "goals" => "goal",
+        "extra.achieved" => "subgoal",
         _ => "action",
     }
 }
@@ -101,7 +158,82 @@ impl TransitionLimits {
             state: widen(spec.state_bounds.clone()),
             goal: widen(goal),
             action: widen(action),
-            rewards: [0.0, -1.0, -horizon],
+            rewards: Rewards::OneOf([0.0, -1.0, -horizon]),
+            extra: Extra::None,
+        }
+    }
+
+    /// The limits of HIRO's `level` (0 or 1) with the high level deciding every `c` steps:
+    ///
+    /// - level 1: goals in the end goal space, actions (relative goals) in `[-r, r]` with `r`
+    ///   the subgoal bounds' half ranges, rewards whole numbers from `-c` to 0, and each
+    ///   transition's packed low-level steps ([`StepsShape`]) with states in the state box,
+    ///   projections in the subgoal space and actions in the action box;
+    /// - level 0: goals (relative goals moved by the goal transition, which can drift by the
+    ///   subgoal space's width within a decision) in `[-(r + w), r + w]`, `w` the width,
+    ///   rewards from minus the largest distance such goals allow (`||r + 2w||`) to 0.
+    pub fn for_hiro_level(spec: &EnvSpec, level: usize, c: usize) -> Self {
+        let subgoals = if spec.achieved_subgoal_bounds.is_empty() {
+            spec.subgoal_bounds.clone()
+        } else {
+            spec.subgoal_bounds.hull(&spec.achieved_subgoal_bounds)
+        };
+        let dims = 0..spec.subgoal_dim();
+        let radius: Vec<f32> = dims.clone().map(|d| spec.subgoal_bounds.half_range(d)).collect();
+        let width: Vec<f32> = dims
+            .map(|d| subgoals.high[d] - subgoals.low[d])
+            .collect();
+        let widen = |b: Bounds| {
+            if b.is_empty() {
+                b
+            } else {
+                b.widened(MARGIN, ROUNDING)
+            }
+        };
+        let state = widen(spec.state_bounds.clone());
+        if level == 0 {
+            let drift: Vec<f32> = radius.iter().zip(&width).map(|(r, w)| r + w).collect();
+            let far: f32 = radius
+                .iter()
+                .zip(&width)
+                .map(|(r, w)| (r + 2.0 * w) * (r + 2.0 * w))
+                .sum::<f32>()
+                .sqrt();
+            Self {
+                state,
+                goal: widen(Bounds::symmetric(&drift)),
+                action: widen(spec.action_bounds.clone()),
+                rewards: Rewards::Within {
+                    max: far * (1.0 + MARGIN) + ROUNDING,
+                },
+                extra: Extra::None,
+            }
+        } else {
+            Self {
+                state: state.clone(),
+                goal: widen(spec.end_goal_bounds.clone()),
+                action: widen(Bounds::symmetric(&radius)),
+                rewards: Rewards::Whole { max: c as f32 },
+                extra: Extra::Steps {
+                    shape: StepsShape {
+                        c,
+                        state: spec.state_dim,
+                        goal: spec.subgoal_dim(),
+                        action: spec.action_dim(),
+                    },
+                    state,
+                    achieved: widen(subgoals),
+                    action: widen(spec.action_bounds.clone()),
+                },
+            }
+        }
+    }
+
+    /// Extra values per transition this level stores.
+    pub fn extra_width(&self) -> usize {
+        match &self.extra {
+            Extra::None => 0,
+            Extra::Steps { shape, .. } => shape.width(),
         }
     }
 
@@ -112,17 +244,70 @@ impl TransitionLimits {
         check_box("next_states", batch.next_states, &self.state)?;
         check_box("goals", batch.goals, &self.goal)?;
         check_box("actions", batch.actions, &self.action)?;
-        let [a, b, c] = self.rewards;
-        if let Some(index) = batch
-            .rewards
-            .iter()
-            .position(|&r| r != a && r != b && r != c)
-        {
-            return Err(LimitError::Reward {
+        self.check_rewards(batch.rewards)?;
+        self.check_extra(batch)
+    }
+
+    fn check_rewards(&self, rewards: &[f32]) -> Result<(), LimitError> {
+        let (bad, what): (Option<usize>, _) = match self.rewards {
+            Rewards::OneOf([a, b, c]) => {
+                if let Some(index) = rewards.iter().position(|&r| r != a && r != b && r != c) {
+                    return Err(LimitError::Reward {
+                        index,
+                        value: rewards[index],
+                        penalty: c,
+                    });
+                }
+                return Ok(());
+            }
+            Rewards::Whole { max } => (
+                rewards
+                    .iter()
+                    .position(|&r| !(-max..=0.0).contains(&r) || r.fract() != 0.0),
+                format!("a whole number from {} to 0", -max),
+            ),
+            Rewards::Within { max } => (
+                rewards.iter().position(|&r| !(-max..=0.0).contains(&r)),
+                format!("from {:e} to 0", -max),
+            ),
+        };
+        match bad {
+            None => Ok(()),
+            Some(index) => Err(LimitError::RewardOutside {
                 index,
-                value: batch.rewards[index],
-                penalty: c,
-            });
+                value: rewards[index],
+                what,
+            }),
+        }
+    }
+
+    fn check_extra(&self, batch: &BatchRef<'_>) -> Result<(), LimitError> {
+        let expected = self.extra_width();
+        let got = batch.extra.len().checked_div(batch.len).unwrap_or(0);
+        if got != expected || batch.extra.len() != batch.len * expected {
+            return Err(LimitError::ExtraWidth { got, expected });
+        }
+        let Extra::Steps {
+            shape,
+            state,
+            achieved,
+            action,
+        } = &self.extra
+        else {
+            return Ok(());
+        };
+        for (index, packed) in batch.extra.chunks_exact(expected).enumerate() {
+            let steps = LowLevelSteps::unpack(packed, *shape)
+                .map_err(|source| LimitError::Steps { index, source })?;
+            let inside = check_box("extra.states", steps.states, state)
+                .and_then(|()| check_box("extra.achieved", steps.achieved, achieved))
+                .and_then(|()| check_box("extra.actions", steps.actions, action));
+            if let Err(e) = inside {
+                return Err(LimitError::StepOutOfBounds {
+                    index,
+                    source: Box::new(e),
+                });
+            }
         }
         Ok(())
     }
@@ -192,6 +377,7 @@ mod tests {
         actions: Vec<f32>,
         rewards: Vec<f32>,
         terminals: Vec<f32>,
+        extra: Vec<f32>,
     }
 
     impl Owned {
@@ -204,6 +390,7 @@ mod tests {
                 actions: vec![1.0, -1.0],
                 rewards: vec![0.0, -1.0],
                 terminals: vec![1.0, 0.0],
+                extra: Vec::new(),
             }
         }
 
@@ -216,8 +403,87 @@ mod tests {
                 next_states: &self.next_states,
                 goals: &self.goals,
                 terminals: &self.terminals,
+                extra: &self.extra,
             }
         }
+    }
+
+    #[test]
+    fn hac_levels_refuse_extra_values_and_hiro_checks_its_rewards_and_steps() {
+        let mut b = Owned::level0();
+        b.extra = vec![0.0; 2];
+        assert_eq!(
+            TransitionLimits::for_level(&spec(), 0, 2, 5.0).check(&b.batch()),
+            Err(LimitError::ExtraWidth {
+                got: 1,
+                expected: 0
+            })
+        );
+
+        // HIRO's low level: distances, not HAC's three values; goals may drift past the box.
+        let low = TransitionLimits::for_hiro_level(&spec(), 0, 3);
+        let mut b = Owned::level0();
+        b.rewards = vec![-0.37, -2.5];
+        b.goals = vec![3.0, 1.5, -2.0, 0.5];
+        assert_eq!(low.check(&b.batch()), Ok(()));
+        b.rewards[1] = 0.1;
+        assert!(matches!(
+            low.check(&b.batch()),
+            Err(LimitError::RewardOutside { index: 1, .. })
+        ));
+
+        // HIRO's high level: sums of -1 over up to c steps, and its steps packed beside.
+        let high = TransitionLimits::for_hiro_level(&spec(), 1, 3);
+        let shape = StepsShape {
+            c: 3,
+            state: 2,
+            goal: 2,
+            action: 1,
+        };
+        assert_eq!(high.extra_width(), shape.width());
+        let mut packed = vec![0.0; shape.width()];
+        LowLevelSteps {
+            states: &[0.0, 0.0, 1.0, 0.5],
+            achieved: &[0.0, 0.0, 1.0, 0.5, 1.5, 0.2],
+            actions: &[0.5, -0.5],
+        }
+        .pack(shape, &mut packed);
+        let mut h = Owned {
+            states: vec![0.0, 0.0],
+            next_states: vec![1.0, 0.5],
+            goals: vec![4.0],
+            actions: vec![1.0, -1.0],
+            rewards: vec![-2.0],
+            terminals: vec![0.0],
+            extra: packed.clone(),
+        };
+        assert_eq!(high.check(&h.batch()), Ok(()));
+        h.rewards[0] = -2.5;
+        assert!(matches!(
+            high.check(&h.batch()),
+            Err(LimitError::RewardOutside { index: 0, .. })
+        ));
+        h.rewards[0] = -4.0;
+        assert!(high.check(&h.batch()).is_err(), "more than c steps of -1");
+        h.rewards[0] = -3.0;
+        h.extra[0] = 5.0;
+        assert!(matches!(
+            high.check(&h.batch()),
+            Err(LimitError::Steps { index: 0, .. })
+        ));
+        h.extra.clone_from(&packed);
+        // The second step's action (at 1 + 3 x 2 + 4 x 2 + 1) far outside the action box.
+        h.extra[1 + 6 + 8 + 1] = 30.0;
+        let err = high.check(&h.batch()).unwrap_err();
+        assert!(
+            err.to_string().contains("extra.actions[1]"),
+            "the message names the step's field: {err}"
+        );
+        h.extra.pop();
+        assert!(matches!(
+            high.check(&h.batch()),
+            Err(LimitError::ExtraWidth { .. })
+        ));
     }
 
     #[test]

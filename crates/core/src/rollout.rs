@@ -400,6 +400,7 @@ impl Hierarchy {
                 next_state: &self.state,
                 goal: &lv.goal,
                 terminal,
+                extra: &[],
             },
         );
 
@@ -435,6 +436,7 @@ impl Hierarchy {
                     next_state: &self.state,
                     goal: &lv.goal,
                     terminal: true,
+                    extra: &[],
                 },
             );
         }
@@ -476,6 +478,7 @@ impl Hierarchy {
                         next_state: &her.next_states[j * sd..(j + 1) * sd],
                         goal,
                         terminal: reached || her.ended[j],
+                        extra: &[],
                     },
                 );
             }

@@ -17,7 +17,9 @@ pub enum TransitionKind {
 }
 
 /// One transition `[state, action, reward, next_state, goal, terminal]`, borrowed from the
-/// rollout's buffers; `terminal` means the target does not bootstrap (discount 0).
+/// rollout's buffers; `terminal` means the target does not bootstrap (discount 0). `extra` is
+/// what an algorithm stores beside it at a fixed width per level: empty for every level of HAC;
+/// HIRO's high level stores its low-level steps there ([`crate::hiro::LowLevelSteps::pack`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Transition<'a> {
     pub kind: TransitionKind,
@@ -27,6 +29,7 @@ pub struct Transition<'a> {
     pub next_state: &'a [f32],
     pub goal: &'a [f32],
     pub terminal: bool,
+    pub extra: &'a [f32],
 }
 
 /// Receives every transition the rollout creates, tagged with the level it belongs to.
@@ -53,6 +56,8 @@ pub struct OwnedTransition {
     pub next_state: Vec<f32>,
     pub goal: Vec<f32>,
     pub terminal: bool,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub extra: Vec<f32>,
 }
 
 /// Keeps every transition it receives, in order.
@@ -67,13 +72,15 @@ impl TransitionSink for Vec<OwnedTransition> {
             next_state: t.next_state.to_vec(),
             goal: t.goal.to_vec(),
             terminal: t.terminal,
+            extra: t.extra.to_vec(),
         });
     }
 }
 
 /// A minibatch for one level in structure-of-arrays layout. Sample `j` occupies
 /// `states[j * dims.state .. (j + 1) * dims.state]`, and so on: read as a column-major matrix,
-/// each field is `dim x len` with one sample per column. `terminals` holds 1.0 or 0.0.
+/// each field is `dim x len` with one sample per column. `terminals` holds 1.0 or 0.0. `extra`
+/// holds each sample's [`Transition::extra`], `extra_width` values each (0 for HAC's levels).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Batch {
     pub dims: LevelDims,
@@ -84,11 +91,18 @@ pub struct Batch {
     pub next_states: Vec<f32>,
     pub goals: Vec<f32>,
     pub terminals: Vec<f32>,
+    pub extra_width: usize,
+    pub extra: Vec<f32>,
 }
 
 impl Batch {
     /// A zero-filled batch of `len` samples, allocated once and refilled by samplers.
     pub fn zeros(dims: LevelDims, len: usize) -> Self {
+        Self::zeros_with_extra(dims, 0, len)
+    }
+
+    /// [`zeros`](Self::zeros) for a level that stores `extra_width` extra values per sample.
+    pub fn zeros_with_extra(dims: LevelDims, extra_width: usize, len: usize) -> Self {
         Self {
             dims,
             len,
@@ -98,6 +112,8 @@ impl Batch {
             next_states: vec![0.0; dims.state * len],
             goals: vec![0.0; dims.goal * len],
             terminals: vec![0.0; len],
+            extra_width,
+            extra: vec![0.0; extra_width * len],
         }
     }
 
@@ -111,6 +127,7 @@ impl Batch {
             next_states: &self.next_states,
             goals: &self.goals,
             terminals: &self.terminals,
+            extra: &self.extra,
         }
     }
 }
@@ -128,4 +145,6 @@ pub struct BatchRef<'a> {
     pub next_states: &'a [f32],
     pub goals: &'a [f32],
     pub terminals: &'a [f32],
+    /// `len` samples' extra values, one after another (empty for HAC's levels).
+    pub extra: &'a [f32],
 }

@@ -43,6 +43,8 @@ pub fn decode_batch(
             next_states: msg.next_states,
             goals: msg.goals,
             terminals: msg.terminals.iter().map(|&t| f32::from(t)).collect(),
+            extra_width: checked.extra_width,
+            extra: msg.extra,
         },
     })
 }
@@ -66,6 +68,8 @@ pub fn decode_batch_into(
     out.terminals.clear();
     out.terminals
         .extend(msg.terminals.iter().map(|&t| f32::from(t)));
+    out.extra_width = checked.extra_width;
+    copy_into(&mut out.extra, &msg.extra);
     Ok(checked.header)
 }
 
@@ -100,6 +104,7 @@ pub fn encode_batch_into(
     out.terminals.clear();
     out.terminals
         .extend(batch.terminals.iter().map(|&t| u8::from(t != 0.0)));
+    copy_into(&mut out.extra, &batch.extra);
 }
 
 /// Moves the vectors of an already valid batch into a message (the actor side of
@@ -122,6 +127,7 @@ impl From<DecodedBatch> for pb::TransitionBatch {
             rewards: batch.rewards,
             next_states: batch.next_states,
             goals: batch.goals,
+            extra: batch.extra,
         }
     }
 }
@@ -130,6 +136,7 @@ struct Checked {
     header: BatchHeader,
     dims: LevelDims,
     len: usize,
+    extra_width: usize,
 }
 
 /// The parts of a batch every check looks at, whatever its representation.
@@ -142,11 +149,13 @@ struct Fields<'a> {
     goals: &'a [f32],
     rewards: &'a [f32],
     terminals: usize,
+    extra: &'a [f32],
 }
 
 impl Fields<'_> {
     /// Level range, count, every field's length, finite floats; the level's dimensions if all
-    /// pass.
+    /// pass. `extra` must hold the same number of values for each transition; how many the
+    /// level stores is for the learner to check (`hac_core::TransitionLimits`).
     fn check(&self, dims: &[LevelDims], max_count: usize) -> Result<LevelDims, WireError> {
         let level_dims =
             dims.get(self.level as usize)
@@ -197,6 +206,12 @@ impl Fields<'_> {
                 return Err(WireError::WrongCount { field, len, count });
             }
         }
+        if !self.extra.len().is_multiple_of(count) {
+            return Err(WireError::ExtraNotPerTransition {
+                len: self.extra.len(),
+                count,
+            });
+        }
         // The value scans run branch-free over the whole field so that they vectorise (an early
         // exit does not); the offending index is searched for only once a batch is known to be
         // bad.
@@ -204,6 +219,7 @@ impl Fields<'_> {
             check_finite(field, values)?;
         }
         check_finite("batch.rewards", self.rewards)?;
+        check_finite("batch.extra", self.extra)?;
         Ok(level_dims)
     }
 }
@@ -226,6 +242,7 @@ pub fn check_batch(
         goals: batch.goals,
         rewards: batch.rewards,
         terminals: batch.terminals.len(),
+        extra: batch.extra,
     };
     fields.check(dims, max_count)?;
     if let Some(index) = batch.terminals.iter().position(|&t| t != 0.0 && t != 1.0) {
@@ -251,6 +268,7 @@ fn validate(
         goals: &msg.goals,
         rewards: &msg.rewards,
         terminals: msg.terminals.len(),
+        extra: &msg.extra,
     };
     let level_dims = fields.check(dims, max_count)?;
     if msg.terminals.iter().fold(0, |max, &t| max.max(t)) > 1 {
@@ -272,6 +290,7 @@ fn validate(
         },
         dims: level_dims,
         len: msg.count as usize,
+        extra_width: msg.extra.len() / (msg.count as usize),
     })
 }
 
@@ -311,6 +330,7 @@ fn debug_assert_batch_consistent(batch: &Batch) {
     );
     debug_assert_eq!(batch.goals.len(), d.goal * n, "batch.goals length");
     debug_assert_eq!(batch.terminals.len(), n, "batch.terminals length");
+    debug_assert_eq!(batch.extra.len(), batch.extra_width * n, "batch.extra length");
     debug_assert!(
         batch.terminals.iter().all(|&t| t == 0.0 || t == 1.0),
         "batch.terminals holds only 0.0 and 1.0"

@@ -58,6 +58,18 @@ pub enum WireError {
         len: usize,
         count: usize,
     },
+    /// A per-level list whose length is not the number of levels.
+    #[error("{field} has {len} entries, expected one per level ({levels})")]
+    NotPerLevel {
+        field: &'static str,
+        len: usize,
+        levels: usize,
+    },
+    /// `batch.extra` whose length is not a whole number of values per transition.
+    #[error(
+        "batch.extra has {len} values, not the same number for each of the {count} transitions"
+    )]
+    ExtraNotPerTransition { len: usize, count: usize },
     /// NaN or an infinity.
     #[error("{field}[{index}] is {value}")]
     NotFinite {

@@ -80,6 +80,17 @@ pub struct Admission {
     /// Episode turns: at most this many training episodes in flight over all actors, trainers
     /// asking for a turn before each episode; 0 for none.
     pub episodes_in_flight: u32,
+    /// Extra values per transition of each level ([`hac_core::Transition::extra`]), level 0
+    /// first; empty when no level has any (HAC).
+    pub extra_widths: Vec<usize>,
+}
+
+impl Admission {
+    /// Extra values per transition of `level` (0 where [`extra_widths`](Self::extra_widths)
+    /// says nothing).
+    pub fn extra_width(&self, level: usize) -> usize {
+        self.extra_widths.get(level).copied().unwrap_or(0)
+    }
 }
 
 /// Shared memory (iceoryx2) the learner serves beside gRPC to actors on its own host.
@@ -234,6 +245,13 @@ impl TryFrom<pb::RegisterResponse> for Admission {
         if msg.max_batch_transitions == 0 {
             return Err(WireError::zero("register_response.max_batch_transitions"));
         }
+        if !msg.extra_widths.is_empty() && msg.extra_widths.len() != msg.levels.len() {
+            return Err(WireError::NotPerLevel {
+                field: "register_response.extra_widths",
+                len: msg.extra_widths.len(),
+                levels: msg.levels.len(),
+            });
+        }
         let levels = msg
             .levels
             .into_iter()
@@ -262,6 +280,7 @@ impl TryFrom<pb::RegisterResponse> for Admission {
             max_weights_lag: msg.max_weights_lag,
             shm,
             episodes_in_flight: msg.episodes_in_flight,
+            extra_widths: msg.extra_widths.iter().map(|&w| w as usize).collect(),
         })
     }
 }
@@ -285,6 +304,11 @@ impl From<Admission> for pb::RegisterResponse {
             shm_namespace,
             shm_host,
             episodes_in_flight: admission.episodes_in_flight,
+            extra_widths: admission
+                .extra_widths
+                .iter()
+                .map(|&w| u32::try_from(w).expect("an extra width fits the wire's u32"))
+                .collect(),
         }
     }
 }
@@ -364,6 +388,7 @@ mod tests {
                 host: "boot/node-1".into(),
             }),
             episodes_in_flight: 2,
+            extra_widths: vec![0, 124],
         }
     }
 
@@ -429,6 +454,23 @@ mod tests {
         msg.shm_host.clear();
         let err = Admission::try_from(msg).unwrap_err();
         assert_eq!(err.to_string(), "missing field register_response.shm_host");
+    }
+
+    #[test]
+    fn extra_widths_are_one_per_level_or_none() {
+        let a = Admission {
+            extra_widths: Vec::new(),
+            ..admission()
+        };
+        let back = Admission::try_from(wire(pb::RegisterResponse::from(a.clone()))).unwrap();
+        assert_eq!((back.extra_width(0), back.extra_width(1)), (0, 0));
+        assert_eq!(admission().extra_width(1), 124);
+        let mut msg = pb::RegisterResponse::from(admission());
+        msg.extra_widths.pop();
+        assert_eq!(
+            Admission::try_from(msg).unwrap_err().to_string(),
+            "register_response.extra_widths has 1 entries, expected one per level (2)"
+        );
     }
 
     #[test]

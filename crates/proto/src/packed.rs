@@ -8,7 +8,7 @@
 //! ```text
 //! offset  size  field
 //!      0     4  magic "HACi"
-//!      4     1  kind: 1 batch, 2 episode summary
+//!      4     1  kind: 1 batch, 2 episode summary, 3 batch with extra values
 //!      5     1  success (episodes): 0 or 1
 //!      6     2  actor id length in bytes
 //!      8     8  incarnation
@@ -20,7 +20,10 @@
 //!     48  6 x 4 float counts of states, actions, rewards, next states, goals, terminals
 //!     72        actor id (UTF-8), zero-padded to a multiple of 8 bytes
 //!      .        the six float arrays, in that order (terminals as 0.0 or 1.0)
+//!      .        kind 3 only: the batch's extra values (`Transition::extra`), to the end
 //! ```
+//! A batch without extra values (every batch of HAC) is kind 1, laid out as before extra values
+//! existed, so write-ahead logs written then still read.
 //! The batch's dimensions are not checked here: the learner checks them like every batch
 //! (`check_batch`), so a packed batch is refused with exactly the error gRPC would give.
 //!
@@ -46,6 +49,7 @@ const INGEST_MAGIC: [u8; 4] = *b"HACi";
 const WEIGHTS_MAGIC: [u8; 4] = *b"HACw";
 const KIND_BATCH: u8 = 1;
 const KIND_EPISODE: u8 = 2;
+const KIND_BATCH_EXTRA: u8 = 3;
 /// Bytes before the actor id.
 const INGEST_HEADER: usize = 72;
 /// Bytes before the level lengths.
@@ -60,12 +64,12 @@ pub const PACKED_ALIGNMENT: usize = 8;
 /// Bytes [`pack_ingest`] writes for `msg`.
 pub fn packed_ingest_len(msg: &IngestRef<'_>) -> usize {
     let floats: usize = float_arrays(&msg.item).iter().map(|a| a.len()).sum();
-    INGEST_HEADER + padded(msg.actor_id.len()) + 4 * floats
+    INGEST_HEADER + padded(msg.actor_id.len()) + 4 * (floats + extra(&msg.item).len())
 }
 
 /// The largest packed ingest message of an actor with an id of `actor_id_len` bytes, for
 /// batches of at most `max_count` transitions with at most `floats_per_transition` floats each
-/// (states, actions, reward, next states, goals, terminal).
+/// (states, actions, reward, next states, goals, terminal, extra values).
 pub fn max_packed_ingest_len(
     actor_id_len: usize,
     max_count: usize,
@@ -94,7 +98,14 @@ pub fn pack_ingest(msg: &IngestRef<'_>, out: &mut [u8]) -> usize {
             level,
             weights_version,
             batch,
-        } => (KIND_BATCH, false, 0, level, batch.len, weights_version),
+        } => {
+            let kind = if batch.extra.is_empty() {
+                KIND_BATCH
+            } else {
+                KIND_BATCH_EXTRA
+            };
+            (kind, false, 0, level, batch.len, weights_version)
+        }
         IngestItemRef::Episode {
             env_steps,
             success,
@@ -124,7 +135,7 @@ pub fn pack_ingest(msg: &IngestRef<'_>, out: &mut [u8]) -> usize {
     out[at..at + id.len()].copy_from_slice(id);
     out[at + id.len()..at + padded(id.len())].fill(0);
     at += padded(id.len());
-    for array in arrays {
+    for array in arrays.into_iter().chain([extra(&msg.item)]) {
         let bytes: &[u8] = bytemuck::cast_slice(array);
         out[at..at + bytes.len()].copy_from_slice(bytes);
         at += bytes.len();
@@ -160,7 +171,24 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
     let floats_at = INGEST_HEADER + padded(id_len);
     // At most 6 x (2^32 - 1) floats: no overflow in usize on the 64-bit targets iceoryx2 runs on.
     let expected = floats_at + 4 * counts.iter().sum::<usize>();
-    if bytes.len() != expected {
+    // A kind 3 batch's extra values run from there to the end.
+    let extra_bytes = if kind == KIND_BATCH_EXTRA {
+        bytes.len().saturating_sub(expected)
+    } else {
+        0
+    };
+    if extra_bytes % 4 != 0 {
+        return Err(packed(format!(
+            "{extra_bytes} bytes of extra values, not whole floats"
+        )));
+    }
+    if kind == KIND_BATCH_EXTRA && extra_bytes == 0 {
+        return Err(packed(format!(
+            "{} bytes: a batch with extra values (kind 3) but none after its {expected} bytes",
+            bytes.len()
+        )));
+    }
+    if bytes.len() != expected + extra_bytes {
         return Err(packed(format!(
             "{} bytes, but its header describes {expected}",
             bytes.len()
@@ -176,7 +204,7 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
         return Err(WireError::missing("ingest_request.sequence"));
     }
     let item = match kind {
-        KIND_BATCH => {
+        KIND_BATCH | KIND_BATCH_EXTRA => {
             let mut at = floats_at;
             let mut arrays: [&[f32]; 6] = [&[]; 6];
             for (array, &n) in arrays.iter_mut().zip(&counts) {
@@ -186,6 +214,8 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
                 at += 4 * n;
             }
             let [states, actions, rewards, next_states, goals, terminals] = arrays;
+            let extra: &[f32] = bytemuck::try_cast_slice(&bytes[at..at + extra_bytes])
+                .map_err(|_| packed("the float arrays are not 4-byte aligned in shared memory"))?;
             IngestItemRef::Batch {
                 level,
                 weights_version,
@@ -197,6 +227,7 @@ pub fn unpack_ingest(bytes: &[u8]) -> Result<IngestRef<'_>, WireError> {
                     next_states,
                     goals,
                     terminals,
+                    extra,
                 },
             }
         }
@@ -350,6 +381,13 @@ fn float_arrays<'a>(item: &IngestItemRef<'a>) -> [&'a [f32]; 6] {
     }
 }
 
+fn extra<'a>(item: &IngestItemRef<'a>) -> &'a [f32] {
+    match *item {
+        IngestItemRef::Batch { batch, .. } => batch.extra,
+        IngestItemRef::Episode { .. } => &[],
+    }
+}
+
 fn padded(len: usize) -> usize {
     len.div_ceil(PACKED_ALIGNMENT) * PACKED_ALIGNMENT
 }
@@ -428,9 +466,10 @@ mod tests {
             1usize..40,
             proptest::collection::vec(finite, 0..400),
             any::<Option<(u64, bool)>>(),
+            0usize..3,
         )
             .prop_map(
-                |(actor_id, incarnation, sequence, version, level, len, floats, episode)| {
+                |(actor_id, incarnation, sequence, version, level, len, floats, episode, extra)| {
                     let item = match episode {
                         Some((env_steps, success)) => IngestItem::Episode {
                             env_steps,
@@ -438,8 +477,12 @@ mod tests {
                             weights_version: version,
                         },
                         None => {
-                            let mut batch = Batch::zeros(DIMS, len);
+                            // Some with extra values (kind 3), some without (kind 1).
+                            let mut batch = Batch::zeros_with_extra(DIMS, extra, len);
                             for (v, f) in batch.states.iter_mut().zip(floats.iter().cycle()) {
+                                *v = *f;
+                            }
+                            for (v, f) in batch.extra.iter_mut().zip(floats.iter().rev().cycle()) {
                                 *v = *f;
                             }
                             IngestItem::Batch(DecodedBatch {

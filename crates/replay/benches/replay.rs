@@ -31,6 +31,7 @@ fn full_table(shards: usize) -> ReplayTable {
             next_state: &next_state,
             goal: &goal,
             terminal: false,
+            extra: &[],
         });
     }
     table
@@ -48,6 +49,7 @@ fn bench(c: &mut Criterion) {
             next_state: &next_state,
             goal: &goal,
             terminal: true,
+            extra: &[],
         };
 
         let mut group = c.benchmark_group(format!("replay_{shards}_shards"));

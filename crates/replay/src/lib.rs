@@ -107,6 +107,7 @@ mod tests {
             next_state: &[5.0, 6.0],
             goal: &[7.0],
             terminal: true,
+            extra: &[],
         };
         replay.push(1, &t);
         (&replay).push(1, &t);

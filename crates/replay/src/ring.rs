@@ -6,6 +6,8 @@ use hac_core::{Batch, LevelDims, Transition};
 /// fields), the same layout as [`Batch`], so sampling copies contiguous slices.
 pub(crate) struct Ring {
     dims: LevelDims,
+    /// Extra values per row ([`Transition::extra`]), 0 for HAC's levels.
+    extra_width: usize,
     capacity: usize,
     len: usize,
     /// The row the next push writes; once the ring is full this is also the oldest row.
@@ -16,14 +18,16 @@ pub(crate) struct Ring {
     next_states: Vec<f32>,
     goals: Vec<f32>,
     terminals: Vec<f32>,
+    extra: Vec<f32>,
 }
 
 impl Ring {
     /// Reserves the whole capacity up front so that pushes never reallocate (a multi-gigabyte copy
     /// in the middle of ingest); the OS commits the pages only as rows are written.
-    pub(crate) fn new(dims: LevelDims, capacity: usize) -> Self {
+    pub(crate) fn new(dims: LevelDims, extra_width: usize, capacity: usize) -> Self {
         Self {
             dims,
+            extra_width,
             capacity,
             len: 0,
             next: 0,
@@ -33,6 +37,7 @@ impl Ring {
             next_states: Vec::with_capacity(dims.state * capacity),
             goals: Vec::with_capacity(dims.goal * capacity),
             terminals: Vec::with_capacity(capacity),
+            extra: Vec::with_capacity(extra_width * capacity),
         }
     }
 
@@ -67,6 +72,7 @@ impl Ring {
             self.next_states.extend_from_slice(t.next_state);
             self.goals.extend_from_slice(t.goal);
             self.terminals.push(terminal);
+            self.extra.extend_from_slice(t.extra);
             self.len += 1;
         } else {
             let i = self.next;
@@ -81,12 +87,14 @@ impl Ring {
             self.next_states[i * state..(i + 1) * state].copy_from_slice(t.next_state);
             self.goals[i * goal..(i + 1) * goal].copy_from_slice(t.goal);
             self.terminals[i] = terminal;
+            let e = self.extra_width;
+            self.extra[i * e..(i + 1) * e].copy_from_slice(t.extra);
         }
         self.next = (self.next + 1) % self.capacity;
     }
 
-    /// Every field as `(name, values, width)`, in [`Batch`]'s order.
-    pub(crate) fn fields(&self) -> [(&'static str, &[f32], usize); 6] {
+    /// Every field as `(name, values, width)`, in [`Batch`]'s order; `extra` last.
+    pub(crate) fn fields(&self) -> [(&'static str, &[f32], usize); 7] {
         let LevelDims {
             state,
             action,
@@ -99,6 +107,7 @@ impl Ring {
             ("next_states", &self.next_states, state),
             ("goals", &self.goals, goal),
             ("terminals", &self.terminals, 1),
+            ("extra", &self.extra, self.extra_width),
         ]
     }
 
@@ -137,6 +146,15 @@ impl Ring {
             &mut batch.goals[first * goal..end * goal],
         );
         gather(&self.terminals, 1, rows, &mut batch.terminals[first..end]);
+        let e = self.extra_width;
+        if e > 0 {
+            gather(
+                &self.extra,
+                e,
+                rows,
+                &mut batch.extra[first * e..end * e],
+            );
+        }
     }
 }
 
@@ -151,7 +169,7 @@ impl Ring {
         };
         (0..self.len)
             .map(|k| {
-                let mut row = Batch::zeros(self.dims, 1);
+                let mut row = Batch::zeros_with_extra(self.dims, self.extra_width, 1);
                 self.copy_rows(&[(start + k) % self.capacity], &mut row, 0);
                 row
             })

@@ -76,6 +76,8 @@ struct SampleScratch {
 /// proceed in parallel, and a sampler holds one shard's lock at a time.
 pub struct ReplayTable {
     dims: LevelDims,
+    /// Extra values per transition ([`Transition::extra`]).
+    extra_width: usize,
     capacity: usize,
     shards: Box<[CacheLine<Shard>]>,
     round_robin: CacheLine<AtomicUsize>,
@@ -89,6 +91,12 @@ impl ReplayTable {
     /// # Panics
     /// If `shards` is zero or exceeds `capacity` (every shard must hold at least one row).
     pub fn new(dims: LevelDims, capacity: usize, shards: usize) -> Self {
+        Self::with_extra(dims, 0, capacity, shards)
+    }
+
+    /// [`new`](Self::new) for a level whose transitions carry `extra_width` extra values each
+    /// (HIRO's high level: its low-level steps).
+    pub fn with_extra(dims: LevelDims, extra_width: usize, capacity: usize, shards: usize) -> Self {
         assert!(shards > 0, "a replay table needs at least one shard");
         assert!(
             capacity >= shards,
@@ -98,7 +106,7 @@ impl ReplayTable {
             .map(|s| {
                 let capacity = capacity / shards + usize::from(s < capacity % shards);
                 CacheLine(Shard {
-                    ring: Mutex::new(Ring::new(dims, capacity)),
+                    ring: Mutex::new(Ring::new(dims, extra_width, capacity)),
                     capacity,
                     inserted: AtomicU64::new(0),
                 })
@@ -111,6 +119,7 @@ impl ReplayTable {
         };
         Self {
             dims,
+            extra_width,
             capacity,
             shards,
             round_robin: CacheLine::default(),
@@ -120,6 +129,11 @@ impl ReplayTable {
 
     pub fn dims(&self) -> LevelDims {
         self.dims
+    }
+
+    /// Extra values per transition (0 for HAC's levels).
+    pub fn extra_width(&self) -> usize {
+        self.extra_width
     }
 
     /// Transitions currently stored (never more than [`capacity`](Self::capacity)).
@@ -164,6 +178,7 @@ impl ReplayTable {
             ("action", action, t.action.len()),
             ("next_state", state, t.next_state.len()),
             ("goal", goal, t.goal.len()),
+            ("extra", self.extra_width, t.extra.len()),
         ] {
             if actual != expected {
                 return Err(DimensionMismatch {
@@ -222,9 +237,11 @@ impl ReplayTable {
                 && batch.rewards.len() == batch.len
                 && batch.next_states.len() == batch.len * state
                 && batch.goals.len() == batch.len * goal
-                && batch.terminals.len() == batch.len,
+                && batch.terminals.len() == batch.len
+                && batch.extra.len() == batch.len * self.extra_width,
             "batch does not fit the replay table"
         );
+        let e = self.extra_width;
         let shard = &self.shards[shard].0;
         let mut ring = shard.ring.lock();
         for j in 0..batch.len {
@@ -236,6 +253,7 @@ impl ReplayTable {
                 next_state: &batch.next_states[j * state..(j + 1) * state],
                 goal: &batch.goals[j * goal..(j + 1) * goal],
                 terminal: batch.terminals[j] != 0.0,
+                extra: &batch.extra[j * e..(j + 1) * e],
             });
         }
         shard
@@ -270,6 +288,7 @@ impl ReplayTable {
         debug_assert_eq!(batch.states.len(), batch.len * self.dims.state);
         debug_assert_eq!(batch.actions.len(), batch.len * self.dims.action);
         debug_assert_eq!(batch.goals.len(), batch.len * self.dims.goal);
+        debug_assert_eq!(batch.extra.len(), batch.len * self.extra_width);
 
         let mut scratch = self.scratch.lock();
         let SampleScratch { ends, counts, rows } = &mut *scratch;
@@ -310,6 +329,7 @@ impl fmt::Debug for ReplayTable {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("ReplayTable")
             .field("dims", &self.dims)
+            .field("extra_width", &self.extra_width)
             .field("capacity", &self.capacity)
             .field("shard_lens", &self.shard_lens().collect::<Vec<_>>())
             .field("inserted_total", &self.inserted_total())
@@ -372,6 +392,7 @@ mod tests {
             next_state: &f.next_state,
             goal: &f.goal,
             terminal: f.terminal,
+            extra: &[],
         }
     }
 

@@ -829,6 +829,7 @@ mod tests {
             next_state,
             goal,
             terminal,
+            extra: &[],
         }
     }
 

@@ -368,6 +368,7 @@ mod tests {
             next_state: &[0.0, 1.0],
             goal: &[3.0, 3.0],
             terminal: true,
+            extra: &[],
         };
         assert!(a.update(level, &t));
     }

@@ -75,6 +75,7 @@ impl Record {
             next_state: &self.next_state,
             goal: &self.goal,
             terminal: self.terminal,
+            extra: &[],
         }
     }
 }

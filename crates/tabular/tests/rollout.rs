@@ -36,6 +36,7 @@ fn rollout(levels: usize, seed: u64, episodes: usize) -> (Vec<OwnedTransition>, 
                 next_state: &t.next_state,
                 goal: &t.goal,
                 terminal: t.terminal,
+                extra: &[],
             };
             assert!(agent.update(t.level, &tr), "no table slot for {t:?}");
         }

@@ -106,6 +106,93 @@ pub struct LowLevelSteps<'a> {
     pub actions: &'a [f32],
 }
 
+/// The shape of a level's packed [`LowLevelSteps`]: at most `c` steps of a state, a subgoal
+/// projection and a primitive action of these widths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepsShape {
+    pub c: usize,
+    pub state: usize,
+    pub goal: usize,
+    pub action: usize,
+}
+
+impl StepsShape {
+    /// Floats per packed transition: the step count, then `c` states, `c + 1` projections and
+    /// `c` actions, each block zero-padded to its full length.
+    pub fn width(&self) -> usize {
+        1 + self.c * self.state + (self.c + 1) * self.goal + self.c * self.action
+    }
+}
+
+/// Why packed low-level steps could not be read.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StepsError {
+    #[error("{got} values of low-level steps, the level stores {expected}")]
+    Width { got: usize, expected: usize },
+    #[error("a step count of {0}, not a whole number from 1 to the level's c = {1}")]
+    Count(f32, usize),
+}
+
+impl<'a> LowLevelSteps<'a> {
+    /// The number of steps, `k`.
+    pub fn count(&self, state_dim: usize) -> usize {
+        self.states.len() / state_dim.max(1)
+    }
+
+    /// Writes the steps into `out` ([`StepsShape::width`] values): `k`, then the states, the
+    /// projections and the actions, each block padded with zeros to `c` (`c + 1`) entries. This
+    /// is the form HIRO's high-level transitions travel and are stored in
+    /// ([`crate::Transition::extra`]).
+    ///
+    /// Panics if `out` is not `shape.width()` long or the steps do not fit the shape.
+    pub fn pack(&self, shape: StepsShape, out: &mut [f32]) {
+        assert_eq!(out.len(), shape.width(), "packed steps of another shape");
+        let k = self.count(shape.state);
+        assert!(
+            k >= 1
+                && k <= shape.c
+                && self.states.len() == k * shape.state
+                && self.achieved.len() == (k + 1) * shape.goal
+                && self.actions.len() == k * shape.action,
+            "low-level steps do not fit the shape"
+        );
+        out.fill(0.0);
+        out[0] = k as f32;
+        let mut at = 1;
+        for (block, full) in [
+            (self.states, shape.c * shape.state),
+            (self.achieved, (shape.c + 1) * shape.goal),
+            (self.actions, shape.c * shape.action),
+        ] {
+            out[at..at + block.len()].copy_from_slice(block);
+            at += full;
+        }
+    }
+
+    /// Reads what [`pack`](Self::pack) wrote, borrowing from `packed`.
+    pub fn unpack(packed: &'a [f32], shape: StepsShape) -> Result<Self, StepsError> {
+        if packed.len() != shape.width() {
+            return Err(StepsError::Width {
+                got: packed.len(),
+                expected: shape.width(),
+            });
+        }
+        let count = packed[0];
+        if !(count >= 1.0 && count <= shape.c as f32 && count.fract() == 0.0) {
+            return Err(StepsError::Count(count, shape.c));
+        }
+        let k = count as usize;
+        let states_at = 1;
+        let achieved_at = states_at + shape.c * shape.state;
+        let actions_at = achieved_at + (shape.c + 1) * shape.goal;
+        Ok(Self {
+            states: &packed[states_at..states_at + k * shape.state],
+            achieved: &packed[achieved_at..achieved_at + (k + 1) * shape.goal],
+            actions: &packed[actions_at..actions_at + k * shape.action],
+        })
+    }
+}
+
 impl OffPolicyCorrection {
     /// A correction that draws `random` Gaussian candidates beside the stored goal and the
     /// achieved displacement (HIRO: 8).
@@ -211,6 +298,48 @@ impl OffPolicyCorrection {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn low_level_steps_round_trip_through_their_packed_form() {
+        let shape = StepsShape {
+            c: 3,
+            state: 2,
+            goal: 1,
+            action: 1,
+        };
+        assert_eq!(shape.width(), 1 + 6 + 4 + 3);
+        let (states, achieved, actions) = ([1.0, 2.0, 3.0, 4.0], [0.5, 0.6, 0.7], [-1.0, 1.0]);
+        let steps = LowLevelSteps {
+            states: &states,
+            achieved: &achieved,
+            actions: &actions,
+        };
+        let mut packed = vec![9.0; shape.width()];
+        steps.pack(shape, &mut packed);
+        assert_eq!(
+            packed,
+            [2.0, 1.0, 2.0, 3.0, 4.0, 0.0, 0.0, 0.5, 0.6, 0.7, 0.0, -1.0, 1.0, 0.0]
+        );
+        let back = LowLevelSteps::unpack(&packed, shape).expect("valid");
+        assert_eq!(
+            (back.states, back.achieved, back.actions),
+            (&states[..], &achieved[..], &actions[..])
+        );
+        assert_eq!(
+            LowLevelSteps::unpack(&packed[1..], shape).unwrap_err(),
+            StepsError::Width {
+                got: 13,
+                expected: 14
+            }
+        );
+        for bad in [0.0, 4.0, 1.5, f32::NAN] {
+            packed[0] = bad;
+            assert!(matches!(
+                LowLevelSteps::unpack(&packed, shape),
+                Err(StepsError::Count(..))
+            ));
+        }
+    }
+
     use super::*;
     use std::f32::consts::PI;
 

@@ -186,6 +186,7 @@ impl HiroRollout {
                     next_state,
                     goal: &self.goal,
                     terminal: terminated,
+                    extra: &[],
                 });
             }
             let ended = success || terminated || steps >= self.spec.max_actions;
@@ -199,6 +200,7 @@ impl HiroRollout {
                         next_state,
                         goal: &self.end_goal,
                         terminal: success || terminated,
+                        extra: &[],
                     },
                     steps: LowLevelSteps {
                         states: &seg.states,

@@ -51,6 +51,10 @@ impl ReplayTable {
             ("shards".to_string(), self.shards.len().to_string()),
             ("capacity".to_string(), self.capacity.to_string()),
         ]);
+        // Written only for a level with extra values, so HAC's snapshots keep their layout.
+        if self.extra_width > 0 {
+            metadata.insert("extra_width".into(), self.extra_width.to_string());
+        }
         let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
         for (s, shard) in self.shards.iter().enumerate() {
             let ring = shard.0.ring.lock();
@@ -60,6 +64,9 @@ impl ReplayTable {
             );
             metadata.insert(format!("shard{s}.next"), ring.next().to_string());
             for (name, values, width) in ring.fields() {
+                if name == "extra" && width == 0 {
+                    continue;
+                }
                 let values = &values[..ring.len() * width];
                 let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
                 let shape = match name {
@@ -123,6 +130,16 @@ impl ReplayTable {
             ("shards", self.shards.len() as u64),
             ("capacity", self.capacity as u64),
         ];
+        let extra_width = match metadata.get("extra_width") {
+            Some(_) => number("extra_width")?,
+            None => 0,
+        };
+        if extra_width != self.extra_width as u64 {
+            return invalid(format!(
+                "`extra_width` is {extra_width}, this table has {}",
+                self.extra_width
+            ));
+        }
         for (key, value) in expected {
             let found = number(key)?;
             if found != value {
@@ -133,10 +150,14 @@ impl ReplayTable {
             return invalid("the table to restore into is not empty".into());
         }
         for (s, shard) in self.shards.iter().enumerate() {
-            let mut columns = Vec::with_capacity(6);
+            let mut columns = Vec::with_capacity(7);
             let mut rows = None;
             let ring = shard.0.ring.lock();
             for (name, _, width) in ring.fields() {
+                if name == "extra" && width == 0 {
+                    columns.push(Vec::new());
+                    continue;
+                }
                 let key = format!("shard{s}.{name}");
                 let tensor = file
                     .tensor(&key)
@@ -180,6 +201,7 @@ impl ReplayTable {
                 ));
             }
             let (state, action, goal) = (self.dims.state, self.dims.action, self.dims.goal);
+            let e = self.extra_width;
             let mut ring = shard.0.ring.lock();
             for j in 0..rows {
                 ring.push(&Transition {
@@ -190,6 +212,7 @@ impl ReplayTable {
                     next_state: &columns[3][j * state..(j + 1) * state],
                     goal: &columns[4][j * goal..(j + 1) * goal],
                     terminal: columns[5][j] != 0.0,
+                    extra: &columns[6][j * e..(j + 1) * e],
                 });
             }
             ring.set_next(next as usize);
@@ -223,6 +246,7 @@ mod tests {
                 next_state: &[x + 1.0, x + 1.5],
                 goal: &[2.0 * x],
                 terminal: id % 2 == 0,
+                extra: &[],
             });
         }
         table
@@ -261,6 +285,7 @@ mod tests {
                     next_state: &[0.0, 0.0],
                     goal: &[0.0],
                     terminal: false,
+                    extra: &[],
                 },
             );
         }
