@@ -9,7 +9,7 @@ use std::thread::JoinHandle;
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
-use crate::{ActorNet, Adam, CriticNet, MlpGrads, MlpWorkspace, NnError};
+use crate::{ActorNet, Adam, CriticNet, Mlp, MlpGrads, MlpWorkspace, NnError};
 
 /// Value of the `format` metadata entry of a learner checkpoint.
 const FORMAT: &str = "hac-nn/level-learner";
@@ -129,12 +129,86 @@ pub struct Diverged {
 }
 
 /// A copy of everything an update changes (networks, optimiser moments and step counts, target
-/// networks), so that a diverged update can be undone. Keep one per level and reuse it: after
-/// the first save, saving allocates nothing.
+/// networks), so that a diverged update can be undone: of a [`LevelLearner`] (two optimisers)
+/// or of a [`crate::Td3Learner`] (three). Keep one per level and reuse it: after the first save,
+/// saving allocates nothing.
 #[derive(Debug, Clone, Default)]
 pub struct LearnerBackup {
+    /// Every saved value, slice after slice in the learner's fixed order.
     values: Vec<f32>,
-    steps: [u64; 2],
+    /// The optimisers' step counts, in the learner's fixed order.
+    steps: Vec<u64>,
+}
+
+impl LearnerBackup {
+    /// Replaces the backup's contents by `steps` and the concatenation of `slices`; allocates
+    /// only when growing past an earlier size.
+    pub(crate) fn fill<'a>(
+        &mut self,
+        steps: impl IntoIterator<Item = u64>,
+        slices: impl IntoIterator<Item = &'a [f32]>,
+    ) {
+        self.steps.clear();
+        self.steps.extend(steps);
+        self.values.clear();
+        for slice in slices {
+            self.values.extend_from_slice(slice);
+        }
+    }
+
+    /// Copies what [`fill`](Self::fill) stored back into `steps` and `slices`, which must have
+    /// the saved shape (checked before anything is written).
+    ///
+    /// Panics if the backup was saved from a learner of another shape.
+    pub(crate) fn put_back(&self, steps: &mut [&mut u64], slices: &mut [&mut [f32]]) {
+        let len: usize = slices.iter().map(|s| s.len()).sum();
+        assert!(
+            steps.len() == self.steps.len() && len == self.values.len(),
+            "learner: backup of another shape ({} step counts and {} values saved, {} and {} to \
+             restore)",
+            self.steps.len(),
+            self.values.len(),
+            steps.len(),
+            len
+        );
+        for (to, &from) in steps.iter_mut().zip(&self.steps) {
+            **to = from;
+        }
+        let mut at = 0;
+        for slice in slices {
+            let n = slice.len();
+            slice.copy_from_slice(&self.values[at..at + n]);
+            at += n;
+        }
+    }
+}
+
+/// What is wrong after an update that produced `stats` and left `networks` (each named by what
+/// [`Diverged::what`] reports for it), if anything: the first statistic that is not finite, else
+/// the first parameter that is not finite or above [`PARAMETER_LIMIT`] in magnitude.
+pub(crate) fn divergence<'a>(
+    stats: &UpdateStats,
+    networks: impl IntoIterator<Item = (&'static str, &'a Mlp)>,
+) -> Option<Diverged> {
+    let statistics = [
+        ("critic loss", stats.critic_loss),
+        ("actor loss", stats.actor_loss),
+        ("mean Q", stats.mean_q),
+        ("mean target", stats.mean_target),
+    ];
+    if let Some(&(what, value)) = statistics.iter().find(|(_, v)| !v.is_finite()) {
+        return Some(Diverged { what, value });
+    }
+    for (what, mlp) in networks {
+        let bad = mlp
+            .tensors()
+            .flatten()
+            .find(|v| !v.is_finite() || v.abs() > PARAMETER_LIMIT);
+        if let Some(&value) = bad {
+            return Some(Diverged { what, value });
+        }
+    }
+    None
 }
 
 /// Slowly-moving copies of actor and critic that the target `y` bootstraps from.
@@ -574,7 +648,7 @@ impl LevelLearner {
     }
 
     fn assemble(config: LearnerConfig, actor: ActorNet, critic: CriticNet) -> Self {
-        let lens = |m: &crate::Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
+        let lens = |m: &Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
         let targets = config.target_tau.map(|tau| Targets {
             actor: actor.clone(),
             critic: critic.clone(),
@@ -767,29 +841,13 @@ impl LevelLearner {
 
     /// What is wrong after an update that produced `stats`, if anything.
     fn divergence(&self, stats: &UpdateStats) -> Option<Diverged> {
-        let statistics = [
-            ("critic loss", stats.critic_loss),
-            ("actor loss", stats.actor_loss),
-            ("mean Q", stats.mean_q),
-            ("mean target", stats.mean_target),
-        ];
-        if let Some(&(what, value)) = statistics.iter().find(|(_, v)| !v.is_finite()) {
-            return Some(Diverged { what, value });
-        }
-        let networks = [
-            ("actor parameter", self.model.actor.mlp()),
-            ("critic parameter", self.model.critic.mlp()),
-        ];
-        for (what, mlp) in networks {
-            let bad = mlp
-                .tensors()
-                .flatten()
-                .find(|v| !v.is_finite() || v.abs() > PARAMETER_LIMIT);
-            if let Some(&value) = bad {
-                return Some(Diverged { what, value });
-            }
-        }
-        None
+        divergence(
+            stats,
+            [
+                ("actor parameter", self.model.actor.mlp()),
+                ("critic parameter", self.model.critic.mlp()),
+            ],
+        )
     }
 
     /// Everything an update changes, as mutable slices in a fixed order, and the two step
@@ -826,27 +884,15 @@ impl LevelLearner {
             .chain(actor_moments)
             .chain(critic_moments)
             .chain(targets);
-        backup.values.clear();
-        for slice in slices {
-            backup.values.extend_from_slice(slice);
-        }
-        backup.steps = [actor_steps, critic_steps];
+        backup.fill([actor_steps, critic_steps], slices);
     }
 
     /// Puts back what [`save`](Self::save) copied into `backup`.
     ///
-    /// Panics if `backup` was saved from a learner of another shape.
+    /// Panics if `backup` was saved from a learner of another shape (or kind).
     pub fn restore(&mut self, backup: &LearnerBackup) {
-        let (steps, slices) = self.state_mut();
-        *steps[0] = backup.steps[0];
-        *steps[1] = backup.steps[1];
-        let mut at = 0;
-        for slice in slices {
-            let n = slice.len();
-            slice.copy_from_slice(&backup.values[at..at + n]);
-            at += n;
-        }
-        assert_eq!(at, backup.values.len(), "learner: backup of another shape");
+        let (mut steps, mut slices) = self.state_mut();
+        backup.put_back(&mut steps, &mut slices);
     }
 
     /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in
@@ -895,43 +941,82 @@ fn check_matches(
     actor: &ActorNet,
     critic: &CriticNet,
 ) -> Result<(), NnError> {
-    let mismatch = |what: &str, expected: String, found: String| {
-        Err(NnError::Mismatch {
-            what: what.into(),
-            expected,
-            found,
-        })
-    };
-    if actor.mlp().sizes() != config.actor_sizes() || actor.dims() != config.dims {
-        return mismatch(
-            "actor layer widths",
-            format!("{:?}", config.actor_sizes()),
-            format!("{:?}", actor.mlp().sizes()),
-        );
-    }
-    if critic.mlp().sizes() != config.critic_sizes() || critic.dims() != config.dims {
-        return mismatch(
-            "critic layer widths",
-            format!("{:?}", config.critic_sizes()),
-            format!("{:?}", critic.mlp().sizes()),
-        );
-    }
-    let b = &config.action_bounds;
-    let scale: Vec<f32> = (0..b.dim()).map(|d| b.half_range(d)).collect();
-    let offset: Vec<f32> = (0..b.dim()).map(|d| b.offset(d)).collect();
-    if actor.output_scale() != scale || actor.output_offset() != offset {
-        return mismatch(
-            "actor output (scale, offset)",
-            format!("({scale:?}, {offset:?})"),
-            format!("({:?}, {:?})", actor.output_scale(), actor.output_offset()),
-        );
+    check_actor(
+        "actor",
+        config.dims,
+        &config.action_bounds,
+        &config.hidden,
+        actor,
+    )?;
+    check_widths("critic", &config.critic_sizes(), critic.mlp())?;
+    if critic.dims() != config.dims {
+        return Err(mismatch(
+            "critic (state, goal, action) widths",
+            format!("{:?}", config.dims),
+            format!("{:?}", critic.dims()),
+        ));
     }
     if critic.horizon() != config.horizon {
-        return mismatch(
+        return Err(mismatch(
             "critic horizon",
             config.horizon.to_string(),
             critic.horizon().to_string(),
-        );
+        ));
+    }
+    Ok(())
+}
+
+/// A [`NnError::Mismatch`]: the file's `what` is `found` where the configuration says
+/// `expected`.
+pub(crate) fn mismatch(what: &str, expected: String, found: String) -> NnError {
+    NnError::Mismatch {
+        what: what.into(),
+        expected,
+        found,
+    }
+}
+
+/// Whether the network `name` read from a file has the layer widths `expected`
+/// (`[input, hidden.., output]`).
+pub(crate) fn check_widths(name: &str, expected: &[usize], mlp: &Mlp) -> Result<(), NnError> {
+    let found = mlp.sizes();
+    if found != expected {
+        return Err(mismatch(
+            &format!("{name} layer widths"),
+            format!("{expected:?}"),
+            format!("{found:?}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Whether the actor `name` read from a file is one for a level with `dims`, acting within
+/// `bounds` through hidden layers `hidden`: its layer widths, its split of the input into state
+/// and goal, and its output scale and offset.
+pub(crate) fn check_actor(
+    name: &str,
+    dims: LevelDims,
+    bounds: &Bounds,
+    hidden: &[usize],
+    actor: &ActorNet,
+) -> Result<(), NnError> {
+    let sizes = [&[dims.state + dims.goal], hidden, &[dims.action]].concat();
+    check_widths(name, &sizes, actor.mlp())?;
+    if actor.dims() != dims {
+        return Err(mismatch(
+            &format!("{name} (state, goal, action) widths"),
+            format!("{dims:?}"),
+            format!("{:?}", actor.dims()),
+        ));
+    }
+    let scale: Vec<f32> = (0..bounds.dim()).map(|d| bounds.half_range(d)).collect();
+    let offset: Vec<f32> = (0..bounds.dim()).map(|d| bounds.offset(d)).collect();
+    if actor.output_scale() != scale || actor.output_offset() != offset {
+        return Err(mismatch(
+            &format!("{name} output (scale, offset)"),
+            format!("({scale:?}, {offset:?})"),
+            format!("({:?}, {:?})", actor.output_scale(), actor.output_offset()),
+        ));
     }
     Ok(())
 }

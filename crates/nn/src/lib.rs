@@ -11,7 +11,10 @@
 //!   minibatch is cut into up to [`GRADIENT_CHUNKS`] chunks (by its size alone) whose gradients
 //!   may be computed on several threads and are summed in a fixed order, so the weights do not
 //!   depend on the thread count.
-//! - [`td3`]: [`Td3Learner`], TD3's twin-critic update (HIRO's learner at both levels).
+//! - [`td3`]: [`Td3Learner`], TD3's twin-critic update (HIRO's learner at both levels), with
+//!   whole-state checkpoints and undoing of diverged updates.
+//! - [`hiro`]: [`BatchedCorrection`], HIRO's off-policy correction of a minibatch of high-level
+//!   transitions with the low-level actor evaluated in batched forward passes.
 //! - [`policy`]: [`ExportedPolicy`], every level's actor in one self-contained file for use
 //!   elsewhere.
 //! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
@@ -26,6 +29,7 @@ pub mod adam;
 mod checkpoint;
 pub mod critic;
 mod error;
+pub mod hiro;
 mod kernels;
 pub mod learner;
 pub mod mlp;
@@ -38,6 +42,7 @@ pub use actor::ActorNet;
 pub use adam::Adam;
 pub use critic::CriticNet;
 pub use error::NnError;
+pub use hiro::BatchedCorrection;
 pub use kernels::hidden_layer_sgemm_gflops;
 pub use learner::{
     Diverged, GRADIENT_CHUNKS, LearnerBackup, LearnerConfig, LevelLearner, MIN_CHUNK_SAMPLES,

@@ -471,7 +471,7 @@ impl MlpWorkspace {
     }
 
     /// Whether these buffers have the layer widths of `mlp`.
-    fn is_for(&self, mlp: &Mlp) -> bool {
+    pub(crate) fn is_for(&self, mlp: &Mlp) -> bool {
         self.sizes.len() == mlp.layers.len() + 1
             && self.sizes[0] == mlp.input_dim()
             && mlp

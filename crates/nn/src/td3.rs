@@ -10,9 +10,14 @@
 
 use hac_core::{Batch, Bounds, LevelDims, Rng};
 
+use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::copy_rows;
-use crate::learner::UpdateStats;
-use crate::{ActorNet, Adam, Mlp, MlpGrads, MlpWorkspace};
+use crate::learner::{UpdateStats, check_actor, check_widths, divergence};
+use crate::{ActorNet, Adam, Diverged, LearnerBackup, Mlp, MlpGrads, MlpWorkspace, NnError};
+
+/// Value of the `format` metadata entry of a TD3 learner checkpoint (distinct from
+/// [`crate::LevelLearner`]'s, whose files hold one critic).
+const FORMAT: &str = "hac-nn/td3-learner";
 
 /// What a TD3 learner needs to know (defaults: [`Td3Config::reference`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -41,6 +46,12 @@ pub struct Td3Config {
 }
 
 impl Td3Config {
+    /// The critics' layer widths, `[state + goal + action, hidden.., 1]`.
+    fn critic_sizes(&self) -> Vec<usize> {
+        let d = self.dims;
+        [&[d.state + d.goal + d.action], self.hidden.as_slice(), &[1]].concat()
+    }
+
     /// The HIRO paper's TD3 settings for a level with `dims` and `action_bounds`: gamma 0.99,
     /// actor lr 1e-4, critic lr 1e-3, tau 0.005, smoothing noise 0.2 clipped to 0.5 (of the half
     /// range), actor every 2nd critic update; hidden layers as given.
@@ -91,6 +102,15 @@ impl Td3Learner {
             .chain(std::iter::once(1))
             .collect();
         let critics = [Mlp::new(&sizes, rng), Mlp::new(&sizes, rng)];
+        let (target_actor, target_critics) = (actor.clone(), critics.clone());
+        Self::assemble(config, [actor, target_actor], [critics, target_critics])
+    }
+
+    /// A learner of the given networks (`[actor, target]`, `[critics, targets]`) with fresh
+    /// optimisers and buffers.
+    fn assemble(config: Td3Config, actors: [ActorNet; 2], critics: [[Mlp; 2]; 2]) -> Self {
+        let [actor, target_actor] = actors;
+        let [critics, target_critics] = critics;
         let lens = |m: &Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
         Self {
             actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
@@ -104,8 +124,8 @@ impl Td3Learner {
             critic_grads: MlpGrads::new(&critics[0]),
             y: Vec::new(),
             last_actor_loss: 0.0,
-            target_actor: actor.clone(),
-            target_critics: critics.clone(),
+            target_actor,
+            target_critics,
             actor,
             critics,
             config,
@@ -176,6 +196,147 @@ impl Td3Learner {
             mean_q,
             mean_target,
         }
+    }
+
+    /// [`update`](Self::update), undone if it diverged: when a statistic is not finite or a
+    /// parameter of the actor or of either critic is not finite or above
+    /// [`crate::PARAMETER_LIMIT`] (the rules of [`crate::LevelLearner::update_or_undo`]), the
+    /// learner is put back as it was before (networks, targets, optimisers and their step
+    /// counts, the last actor loss) and the error says what was wrong. `rng` is not put back:
+    /// the smoothing noise drawn stays drawn. `backup` is scratch space kept between calls.
+    ///
+    /// Healthy updates are bit-identical to [`update`](Self::update)'s.
+    pub fn update_or_undo(
+        &mut self,
+        batch: &Batch,
+        next_goals: Option<&[f32]>,
+        rng: &mut Rng,
+        backup: &mut LearnerBackup,
+    ) -> Result<UpdateStats, Diverged> {
+        self.save(backup);
+        let stats = self.update(batch, next_goals, rng);
+        let networks = [
+            ("actor parameter", self.actor.mlp()),
+            ("critic parameter", &self.critics[0]),
+            ("critic parameter", &self.critics[1]),
+        ];
+        match divergence(&stats, networks) {
+            None => Ok(stats),
+            Some(diverged) => {
+                self.restore(backup);
+                Err(diverged)
+            }
+        }
+    }
+
+    /// Copies everything an update changes into `backup`: the three step counts (actor, then
+    /// each critic's optimiser), then the actor, both critics, the three optimisers' moments,
+    /// the target actor, both target critics and the last actor loss. Allocates nothing once
+    /// `backup` has held this learner's state.
+    pub fn save(&self, backup: &mut LearnerBackup) {
+        let (actor_steps, actor_moments) = self.actor_opt.state();
+        let (steps_0, moments_0) = self.critic_opts[0].state();
+        let (steps_1, moments_1) = self.critic_opts[1].state();
+        let slices = self
+            .actor
+            .mlp()
+            .tensors()
+            .chain(self.critics.iter().flat_map(Mlp::tensors))
+            .chain(actor_moments)
+            .chain(moments_0)
+            .chain(moments_1)
+            .chain(self.target_actor.mlp().tensors())
+            .chain(self.target_critics.iter().flat_map(Mlp::tensors))
+            .chain(std::iter::once(std::slice::from_ref(&self.last_actor_loss)));
+        backup.fill([actor_steps, steps_0, steps_1], slices);
+    }
+
+    /// Puts back what [`save`](Self::save) copied into `backup`.
+    ///
+    /// Panics if `backup` was saved from a learner of another shape or kind (a
+    /// [`crate::LevelLearner`]'s holds two step counts, not three).
+    pub fn restore(&mut self, backup: &LearnerBackup) {
+        let (actor_steps, actor_moments) = self.actor_opt.state_mut();
+        let [opt_0, opt_1] = &mut self.critic_opts;
+        let (steps_0, moments_0) = opt_0.state_mut();
+        let (steps_1, moments_1) = opt_1.state_mut();
+        let mut slices: Vec<&mut [f32]> = self.actor.mlp_mut().tensors_mut().collect();
+        slices.extend(self.critics.iter_mut().flat_map(Mlp::tensors_mut));
+        slices.extend(actor_moments);
+        slices.extend(moments_0);
+        slices.extend(moments_1);
+        slices.extend(self.target_actor.mlp_mut().tensors_mut());
+        slices.extend(self.target_critics.iter_mut().flat_map(Mlp::tensors_mut));
+        slices.push(std::slice::from_mut(&mut self.last_actor_loss));
+        backup.put_back(&mut [actor_steps, steps_0, steps_1], &mut slices);
+    }
+
+    /// The learner's whole state as a safetensors file (format tag `hac-nn/td3-learner`): the
+    /// actor (`actor.*`, laid out as in [`ActorNet::to_safetensors`]) and target actor
+    /// (`target_actor.*`); the critics and target critics (`critic.{k}.{l}.weight` as `[out,
+    /// in]` and `critic.{k}.{l}.bias`, `target_critic.{k}.*`, `k` 0 or 1, `l` the layer); the
+    /// optimisers' moments (`actor_adam.*`, `critic_adam.{k}.*`) with their step counts as
+    /// metadata; and the loss of the last actor step (`last_actor_loss`, one value, which
+    /// updates between actor steps report).
+    pub fn to_safetensors(&self) -> Vec<u8> {
+        let mut out = TensorWriter::default();
+        out.meta("format".into(), FORMAT);
+        self.actor.write("actor.", &mut out);
+        self.target_actor.write("target_actor.", &mut out);
+        for k in 0..2 {
+            self.critics[k].write(&format!("critic.{k}."), &mut out);
+            self.target_critics[k].write(&format!("target_critic.{k}."), &mut out);
+            self.critic_opts[k].write(&format!("critic_adam.{k}."), &mut out);
+        }
+        self.actor_opt.write("actor_adam.", &mut out);
+        out.add(
+            "last_actor_loss".into(),
+            &[1],
+            std::slice::from_ref(&self.last_actor_loss),
+        );
+        out.finish()
+    }
+
+    /// Restores a learner saved by [`Td3Learner::to_safetensors`]. Every network in the file
+    /// must have the architecture and (actors) the bounds `config` describes, else the error
+    /// ([`NnError::Mismatch`]) names the network and the property that differs; the
+    /// hyperparameters (learning rates, gamma, tau, noise, delay) come from `config`.
+    pub fn from_safetensors(config: Td3Config, bytes: &[u8]) -> Result<Self, NnError> {
+        let file = TensorReader::new(bytes)?;
+        file.expect_format(FORMAT)?;
+        let (d, bounds, hidden) = (config.dims, &config.action_bounds, &config.hidden);
+        let read_actor = |name: &str| -> Result<ActorNet, NnError> {
+            let actor = ActorNet::read(&format!("{name}."), &file)?;
+            check_actor(name, d, bounds, hidden, &actor)?;
+            Ok(actor)
+        };
+        let actors = [read_actor("actor")?, read_actor("target_actor")?];
+        let critic_sizes = config.critic_sizes();
+        let read_critic = |name: String| -> Result<Mlp, NnError> {
+            let mlp = Mlp::read(&format!("{name}."), &file)?;
+            check_widths(&name, &critic_sizes, &mlp)?;
+            Ok(mlp)
+        };
+        let critics = [
+            [
+                read_critic("critic.0".into())?,
+                read_critic("critic.1".into())?,
+            ],
+            [
+                read_critic("target_critic.0".into())?,
+                read_critic("target_critic.1".into())?,
+            ],
+        ];
+        let mut learner = Self::assemble(config, actors, critics);
+        learner.actor_opt.read("actor_adam.", &file)?;
+        for (k, opt) in learner.critic_opts.iter_mut().enumerate() {
+            opt.read(&format!("critic_adam.{k}."), &file)?;
+        }
+        file.read_into(
+            "last_actor_loss",
+            std::slice::from_mut(&mut learner.last_actor_loss),
+        )?;
+        Ok(learner)
     }
 
     /// Sets `self.y` to the clipped double-Q targets; returns their mean.
@@ -510,5 +671,229 @@ mod tests {
             after < 0.15,
             "worst error after training {after} (before {before})"
         );
+    }
+
+    /// Random batches with a next goal that moves with the state, as HIRO's low level's does.
+    fn batches(count: usize, rng: &mut Rng) -> Vec<(Batch, Vec<f32>)> {
+        (0..count)
+            .map(|_| {
+                let b = batch(32, rng);
+                let next_goals = b.goals.iter().map(|g| g - 0.1).collect();
+                (b, next_goals)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn checkpoint_round_trip_continues_bit_identically() {
+        let mut rng = Rng::seed_from(5);
+        let data = batches(7, &mut rng);
+        let mut learner = Td3Learner::new(config(), &mut rng);
+        // 3 updates: the file is written between an actor step and a critic-only update, so the
+        // restored learner must know both the step counts and the last actor loss.
+        for (b, g) in &data[..3] {
+            learner.update(b, Some(g), &mut rng);
+        }
+        let bytes = learner.to_safetensors();
+        let mut restored = Td3Learner::from_safetensors(config(), &bytes).unwrap();
+        assert_eq!(restored.to_safetensors(), bytes, "the file round-trips");
+        assert_eq!(restored.updates(), 3);
+        let mut restored_rng = rng.clone();
+        for (b, g) in &data[3..] {
+            assert_eq!(
+                learner.update(b, Some(g), &mut rng),
+                restored.update(b, Some(g), &mut restored_rng)
+            );
+        }
+        assert_eq!(learner.to_safetensors(), restored.to_safetensors());
+        let weights = |l: &Td3Learner| {
+            let mut all: Vec<u32> = l
+                .actor
+                .mlp()
+                .tensors()
+                .flatten()
+                .map(|v| v.to_bits())
+                .collect();
+            for m in l.critics.iter().chain(&l.target_critics) {
+                all.extend(m.tensors().flatten().map(|v| v.to_bits()));
+            }
+            all
+        };
+        assert_eq!(weights(&learner), weights(&restored));
+    }
+
+    #[test]
+    fn a_checkpoint_of_other_dimensions_is_refused_naming_what_differs() {
+        let mut rng = Rng::seed_from(6);
+        let bytes = Td3Learner::new(config(), &mut rng).to_safetensors();
+        let mismatch = |cfg: Td3Config| match Td3Learner::from_safetensors(cfg, &bytes) {
+            Err(NnError::Mismatch {
+                what,
+                expected,
+                found,
+            }) => (what, expected, found),
+            Err(e) => panic!("not a mismatch: {e}"),
+            Ok(_) => panic!("accepted"),
+        };
+        let wider_state = Td3Config::reference(
+            LevelDims { state: 3, ..DIMS },
+            Bounds::symmetric(&[2.0]),
+            vec![16, 16],
+        );
+        assert_eq!(
+            mismatch(wider_state),
+            (
+                "actor layer widths".into(),
+                "[4, 16, 16, 1]".into(),
+                "[3, 16, 16, 1]".into()
+            )
+        );
+        // The same input width split otherwise between state and goal.
+        let split = Td3Config::reference(
+            LevelDims {
+                state: 1,
+                goal: 2,
+                action: 1,
+            },
+            Bounds::symmetric(&[2.0]),
+            vec![16, 16],
+        );
+        let (what, ..) = mismatch(split);
+        assert_eq!(what, "actor (state, goal, action) widths");
+        let hidden = Td3Config::reference(DIMS, Bounds::symmetric(&[2.0]), vec![16, 8]);
+        assert_eq!(mismatch(hidden).0, "actor layer widths");
+        let bounds = Td3Config::reference(DIMS, Bounds::symmetric(&[1.0]), vec![16, 16]);
+        assert_eq!(mismatch(bounds).0, "actor output (scale, offset)");
+
+        // A critic that differs alone is named.
+        let mut other = Td3Learner::new(config(), &mut rng);
+        other.target_critics[1] = Mlp::new(&[4, 16, 9, 1], &mut rng);
+        let (what, expected, found) =
+            match Td3Learner::from_safetensors(config(), &other.to_safetensors()) {
+                Err(NnError::Mismatch {
+                    what,
+                    expected,
+                    found,
+                }) => (what, expected, found),
+                other => panic!("{other:?}"),
+            };
+        assert_eq!(
+            (what.as_str(), expected.as_str(), found.as_str()),
+            (
+                "target_critic.1 layer widths",
+                "[4, 16, 16, 1]",
+                "[4, 16, 9, 1]"
+            )
+        );
+
+        // Another kind of file is refused by its format tag.
+        let level = crate::LevelLearner::new(
+            crate::LearnerConfig {
+                dims: DIMS,
+                action_bounds: Bounds::symmetric(&[2.0]),
+                horizon: 10.0,
+                gamma: 0.99,
+                hidden: vec![16, 16],
+                actor_lr: 1e-3,
+                critic_lr: 1e-3,
+                target_tau: Some(0.005),
+                actor_preactivation_l2: 0.0,
+                exact_critic_slope: false,
+            },
+            &mut rng,
+        );
+        assert!(matches!(
+            Td3Learner::from_safetensors(config(), &level.to_safetensors()),
+            Err(NnError::Metadata { .. })
+        ));
+        assert!(matches!(
+            Td3Learner::from_safetensors(config(), &bytes[..bytes.len() / 2]),
+            Err(NnError::Format(_))
+        ));
+    }
+
+    #[test]
+    fn a_diverged_update_is_undone_and_healthy_ones_match_update() {
+        let mut rng = Rng::seed_from(7);
+        let data = batches(6, &mut rng);
+        let mut guarded = Td3Learner::new(config(), &mut rng);
+        let mut plain = guarded.clone();
+        let (mut guarded_rng, mut plain_rng) = (rng.clone(), rng.clone());
+        let mut backup = LearnerBackup::default();
+        for (b, g) in &data[..3] {
+            let stats = guarded
+                .update_or_undo(b, Some(g), &mut guarded_rng, &mut backup)
+                .unwrap();
+            assert_eq!(stats, plain.update(b, Some(g), &mut plain_rng));
+        }
+        assert_eq!(guarded.to_safetensors(), plain.to_safetensors());
+
+        // A NaN reward reaches the targets; a huge one blows up the critics.
+        for (reward, what) in [(f32::NAN, "critic loss"), (1e30, "critic loss")] {
+            let mut poison = data[3].0.clone();
+            poison.rewards[5] = reward;
+            let before = guarded.to_safetensors();
+            let steps = (guarded.actor_opt.steps(), guarded.updates());
+            let e = guarded
+                .update_or_undo(&poison, Some(&data[3].1), &mut rng, &mut backup)
+                .unwrap_err();
+            assert_eq!(e.what, what, "{e}");
+            assert_eq!(guarded.to_safetensors(), before, "undone to the last byte");
+            assert_eq!(
+                (guarded.actor_opt.steps(), guarded.updates()),
+                steps,
+                "step counts"
+            );
+            assert_eq!(guarded.critic_opts[1].steps(), steps.1);
+        }
+
+        // An exploding actor step: a learning rate of 1e30, on the 4th update, which moves the
+        // actor (every 2nd does).
+        let mut exploding = guarded.clone();
+        let lens: Vec<usize> = exploding.actor.mlp().tensors().map(<[f32]>::len).collect();
+        exploding.actor_opt = Adam::new(1e30, lens);
+        *exploding.actor_opt.state_mut().0 = guarded.actor_opt.steps();
+        let before = exploding.to_safetensors();
+        let e = exploding
+            .update_or_undo(&data[3].0, Some(&data[3].1), &mut rng, &mut backup)
+            .unwrap_err();
+        assert!(
+            e.what == "actor parameter" && (!e.value.is_finite() || e.value.abs() > 1e6),
+            "{e}"
+        );
+        assert_eq!(exploding.to_safetensors(), before);
+
+        // ... and the guarded learner goes on as if the poison never came.
+        for (b, g) in &data[3..] {
+            let stats = guarded
+                .update_or_undo(b, Some(g), &mut guarded_rng, &mut backup)
+                .unwrap();
+            assert_eq!(stats, plain.update(b, Some(g), &mut plain_rng));
+        }
+        assert_eq!(guarded.to_safetensors(), plain.to_safetensors());
+    }
+
+    #[test]
+    #[should_panic(expected = "backup of another shape")]
+    fn a_level_learners_backup_is_refused() {
+        let mut rng = Rng::seed_from(8);
+        let level = crate::LevelLearner::new(
+            crate::LearnerConfig {
+                dims: DIMS,
+                action_bounds: Bounds::symmetric(&[2.0]),
+                horizon: 10.0,
+                gamma: 0.99,
+                hidden: vec![16, 16],
+                actor_lr: 1e-3,
+                critic_lr: 1e-3,
+                target_tau: None,
+                actor_preactivation_l2: 0.0,
+                exact_critic_slope: false,
+            },
+            &mut rng,
+        );
+        let mut backup = LearnerBackup::default();
+        level.save(&mut backup);
+        Td3Learner::new(config(), &mut rng).restore(&backup);
     }
 }
