@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use hac_agent::{RunConfig, RunConfigError, test_episodes};
-use hac_core::{GaussianExploration, Hierarchy, Mode, Rng};
+use hac_core::{Episodes, GaussianExploration, Mode, Rng};
 use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
 use hac_transport::{ActorLink, EvaluationOf, LinkError};
 
@@ -139,14 +139,23 @@ pub fn run_actor(
             admission.levels
         )));
     }
+    let extra_widths = run.extra_widths(&spec);
+    if (0..run.levels).any(|l| admission.extra_width(l) != extra_widths[l]) {
+        return Err(ActorError::Mismatch(format!(
+            "config implies extra values per transition {extra_widths:?}, the learner announced \
+             {:?}",
+            admission.extra_widths
+        )));
+    }
     let mut root = Rng::seed_from(admission.seed);
     let state = State {
         exploration: GaussianExploration::new(&spec, &run.agent, root.fork()),
         train_rng: root.fork(),
         test_rng: root.fork(),
-        hierarchy: Hierarchy::new(&spec, &run.agent),
-        adder: Adder::new(
+        episodes: Episodes::new(&spec, &run.agent, run.hiro()),
+        adder: Adder::with_extra(
             &dims,
+            &extra_widths,
             options
                 .batch_transitions
                 .min(admission.max_batch_transitions),
@@ -192,7 +201,7 @@ struct State<F> {
     exploration: GaussianExploration,
     train_rng: Rng,
     test_rng: Rng,
-    hierarchy: Hierarchy,
+    episodes: Episodes,
     adder: Adder,
     gate: WeightsGate,
     summary: ActorSummary,
@@ -386,7 +395,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     fn play_episode(&mut self, p: &mut SnapshotPolicy) -> Result<(), ActorError> {
         let s = &mut self.s;
         s.adder.set_weights_version(p.version());
-        let outcome = s.hierarchy.run_episode(
+        let outcome = s.episodes.run_episode(
             s.env.as_mut(),
             p,
             &mut s.exploration,
@@ -477,7 +486,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let episodes = s.run.agent.test_episodes.max(1);
         let mut successes = 0u32;
         let rate = test_episodes(
-            &mut s.hierarchy,
+            &mut s.episodes,
             s.env.as_mut(),
             policy,
             &mut s.exploration,

@@ -21,16 +21,27 @@ pub struct Adder {
 impl Adder {
     /// An adder for levels of `dims`, batches of at most `max_len` (>= 1) transitions.
     pub fn new(dims: &[LevelDims], max_len: usize) -> Self {
+        Self::with_extra(dims, &[], max_len)
+    }
+
+    /// [`new`](Self::new) for levels whose transitions carry `extra_widths[level]` extra values
+    /// each (missing entries: none), as the learner's admission says.
+    pub fn with_extra(dims: &[LevelDims], extra_widths: &[usize], max_len: usize) -> Self {
         let max_len = max_len.max(1);
+        let extra = |level: usize| extra_widths.get(level).copied().unwrap_or(0);
         Self {
-            open: dims.iter().map(|&d| Self::empty(d, max_len)).collect(),
+            open: dims
+                .iter()
+                .enumerate()
+                .map(|(level, &d)| Self::empty(d, extra(level), max_len))
+                .collect(),
             max_len,
             weights_version: 0,
             ready: Vec::new(),
         }
     }
 
-    fn empty(dims: LevelDims, max_len: usize) -> Batch {
+    fn empty(dims: LevelDims, extra_width: usize, max_len: usize) -> Batch {
         Batch {
             dims,
             len: 0,
@@ -40,6 +51,8 @@ impl Adder {
             next_states: Vec::with_capacity(dims.state * max_len),
             goals: Vec::with_capacity(dims.goal * max_len),
             terminals: Vec::with_capacity(max_len),
+            extra_width,
+            extra: Vec::with_capacity(extra_width * max_len),
         }
     }
 
@@ -53,7 +66,10 @@ impl Adder {
         if batch.len == 0 {
             return;
         }
-        let full = std::mem::replace(batch, Self::empty(batch.dims, self.max_len));
+        let full = std::mem::replace(
+            batch,
+            Self::empty(batch.dims, batch.extra_width, self.max_len),
+        );
         self.ready.push(IngestItem::Batch(DecodedBatch {
             level,
             weights_version: self.weights_version,
@@ -80,6 +96,8 @@ impl TransitionSink for Adder {
         batch.next_states.extend_from_slice(t.next_state);
         batch.goals.extend_from_slice(t.goal);
         batch.terminals.push(if t.terminal { 1.0 } else { 0.0 });
+        debug_assert_eq!(t.extra.len(), batch.extra_width, "extra values of another width");
+        batch.extra.extend_from_slice(t.extra);
         batch.len += 1;
         if batch.len == self.max_len {
             self.close(level);

@@ -20,6 +20,8 @@ fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunC
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     }
 }
 

@@ -31,6 +31,8 @@ fn learner(episodes_in_flight: u32) -> Arc<Learner> {
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     };
     let options = LearnerOptions {
         episodes_in_flight,

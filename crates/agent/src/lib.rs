@@ -1,7 +1,8 @@
 //! The HAC agent and what every part of a run shares.
 //!
-//! - [`Agent`]: one [`LevelLearner`] per level; it is the rollout's [`Policy`] (greedy outputs)
-//!   and saves/loads its weights as one safetensors file per level.
+//! - [`Agent`]: one [`LevelModel`] per level (HAC's learner, or HIRO's TD3 learner); it is the
+//!   rollout's [`Policy`] (greedy outputs) and saves/loads its weights as one safetensors file
+//!   per level.
 //! - [`RunConfig`]: everything that defines a run (the learner hands it to actors).
 //! - [`RoundReport`]: one point of the learning curve, as `curve.csv` stores it.
 //! - [`evaluate`] / [`test_episodes`]: greedy test episodes.
@@ -14,10 +15,11 @@ mod run_config;
 use std::path::Path;
 
 use hac_core::{
-    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, Exploration, GaussianExploration,
-    Hierarchy, Mode, NullSink, Policy, Rng,
+    AgentConfig, ConfigError, Env, EnvSpec, Episodes, EpisodeOutcome, Exploration,
+    GaussianExploration, Mode, NullSink, Policy, Rng,
 };
-use hac_nn::{LearnerConfig, LevelLearner, NnError};
+use hac_core::hiro::HiroConfig;
+use hac_nn::{LevelModel, NnError};
 use serde::{Deserialize, Serialize};
 
 pub use run_config::{
@@ -44,37 +46,49 @@ pub enum AgentError {
     },
 }
 
-/// k level learners; level 0 acts in the environment, level `i > 0` proposes subgoals.
+/// k level learners; level 0 acts in the environment, level `i > 0` proposes subgoals (HIRO's
+/// level 1: relative goals).
 #[derive(Debug)]
 pub struct Agent {
-    levels: Vec<LevelLearner>,
+    levels: Vec<LevelModel>,
 }
 
 impl Agent {
-    /// Freshly initialised networks for every level; `config` must have been validated.
+    /// Freshly initialised HAC networks for every level; `config` must have been validated.
     pub fn new(spec: &EnvSpec, config: &AgentConfig, rng: &mut Rng) -> Self {
+        Self::with_algo(spec, config, None, rng)
+    }
+
+    /// Freshly initialised networks for every level of `run`'s algorithm.
+    pub fn for_run(spec: &EnvSpec, run: &RunConfig, rng: &mut Rng) -> Self {
+        Self::with_algo(spec, &run.agent, run.hiro(), rng)
+    }
+
+    /// HIRO's levels when `hiro` is given, else HAC's; each level draws from its own fork of
+    /// `rng`, level 0 first.
+    fn with_algo(
+        spec: &EnvSpec,
+        config: &AgentConfig,
+        hiro: Option<&HiroConfig>,
+        rng: &mut Rng,
+    ) -> Self {
         let levels = (0..config.levels)
-            .map(|level| {
-                LevelLearner::new(
-                    LearnerConfig::for_level(config, spec, level),
-                    &mut rng.fork(),
-                )
-            })
+            .map(|level| LevelModel::new(config, hiro, spec, level, &mut rng.fork()))
             .collect();
         Self { levels }
     }
 
     /// An agent made of trained level learners, level 0 first.
-    pub fn from_levels(levels: Vec<LevelLearner>) -> Self {
+    pub fn from_levels(levels: Vec<LevelModel>) -> Self {
         Self { levels }
     }
 
     /// The level learners, level 0 first.
-    pub fn into_levels(self) -> Vec<LevelLearner> {
+    pub fn into_levels(self) -> Vec<LevelModel> {
         self.levels
     }
 
-    pub fn levels(&self) -> &[LevelLearner] {
+    pub fn levels(&self) -> &[LevelModel] {
         &self.levels
     }
 
@@ -98,7 +112,8 @@ impl Agent {
     }
 
     /// Reads the weights `save` wrote, checking them against the run's config.
-    pub fn load(dir: &Path, spec: &EnvSpec, config: &AgentConfig) -> Result<Self, AgentError> {
+    pub fn load(dir: &Path, spec: &EnvSpec, run: &RunConfig) -> Result<Self, AgentError> {
+        let config = &run.agent;
         let mut levels = Vec::with_capacity(config.levels);
         for level in 0..config.levels {
             let path = dir.join(format!("level{level}.safetensors"));
@@ -107,13 +122,11 @@ impl Agent {
                 path: shown.clone(),
                 source,
             })?;
-            let expected = LearnerConfig::for_level(config, spec, level);
-            let learner = LevelLearner::from_safetensors(expected, &bytes).map_err(|source| {
-                AgentError::Weights {
+            let learner = LevelModel::from_safetensors(config, run.hiro(), spec, level, &bytes)
+                .map_err(|source| AgentError::Weights {
                     path: shown.clone(),
                     source,
-                }
-            })?;
+                })?;
             levels.push(learner);
         }
         Ok(Self { levels })
@@ -206,7 +219,7 @@ impl RoundReport {
 pub fn evaluate(
     env: &mut dyn Env,
     agent: &mut impl Policy,
-    config: &AgentConfig,
+    run: &RunConfig,
     episodes: usize,
     seed: u64,
     on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
@@ -214,10 +227,10 @@ pub fn evaluate(
     let spec = env.spec().clone();
     let mut rng = Rng::seed_from(seed);
     // Never consulted in test mode, where every level acts greedily.
-    let mut exploration = GaussianExploration::new(&spec, config, rng.fork());
-    let mut hierarchy = Hierarchy::new(&spec, config);
+    let mut exploration = GaussianExploration::new(&spec, &run.agent, rng.fork());
+    let mut episodes_of = Episodes::new(&spec, &run.agent, run.hiro());
     test_episodes(
-        &mut hierarchy,
+        &mut episodes_of,
         env,
         agent,
         &mut exploration,
@@ -230,7 +243,7 @@ pub fn evaluate(
 /// Runs `episodes` greedy test episodes of `policy`; returns the success rate. The rollout never
 /// consults `exploration` in test mode.
 pub fn test_episodes(
-    hierarchy: &mut Hierarchy,
+    rollout: &mut Episodes,
     env: &mut dyn Env,
     agent: &mut impl Policy,
     exploration: &mut impl Exploration,
@@ -240,10 +253,9 @@ pub fn test_episodes(
 ) -> f32 {
     let mut successes = 0usize;
     for _ in 0..episodes {
-        let outcome =
-            hierarchy.run_episode(env, agent, exploration, Mode::Test, rng, &mut NullSink);
+        let outcome = rollout.run_episode(env, agent, exploration, Mode::Test, rng, &mut NullSink);
         successes += usize::from(outcome.success);
-        on_episode(&outcome, env.state(), hierarchy.end_goal());
+        on_episode(&outcome, env.state(), rollout.end_goal());
     }
     successes as f32 / episodes.max(1) as f32
 }

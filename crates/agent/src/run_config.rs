@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use hac_core::hiro::{Algo, HiroConfig};
 use hac_core::{AgentConfig, Bounds};
 use hac_tabular::TabularConfig;
 use serde::{Deserialize, Serialize};
@@ -12,6 +13,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RunConfig {
+    /// The algorithm: `hac` (the default, left out of the file) or `hiro` (2 levels only).
+    #[serde(default, skip_serializing_if = "Algo::is_hac")]
+    pub algo: Algo,
     /// Built-in environment name (`hac env list` lists them).
     pub env: String,
     /// Number of levels (1 = flat DDPG + HER).
@@ -40,6 +44,10 @@ pub struct RunConfig {
     /// `[tabular]` in the file, with `--set tabular.KEY=VALUE`, or `HAC_TABULAR_<KEY>`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tabular: Option<TabularConfig>,
+    /// HIRO's own settings; present exactly when `algo` is `hiro`. Set under `[hiro]` in the
+    /// file, with `--set hiro.KEY=VALUE`, or `HAC_HIRO_<KEY>`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hiro: Option<HiroConfig>,
 }
 
 /// Why a run configuration could not be read.
@@ -144,6 +152,30 @@ impl RunConfig {
                 ),
             );
         }
+        if (self.algo == Algo::Hiro) != self.hiro.is_some() {
+            return invalid(
+                "hiro",
+                "the `[hiro]` section is required with `algo = \"hiro\"` and refused otherwise"
+                    .into(),
+            );
+        }
+        if let Some(hiro) = &self.hiro {
+            if self.is_tabular() {
+                return invalid(
+                    "algo",
+                    format!(
+                        "HIRO learns continuous tasks; `{}` is a grid world for the tabular \
+                         learner",
+                        self.env
+                    ),
+                );
+            }
+            hiro.validate(self.levels, &self.agent)
+                .map_err(|source| RunConfigError::Agent {
+                    origin: origin.to_string(),
+                    source,
+                })?;
+        }
         if let Some(tabular) = &self.tabular {
             tabular.validate().map_err(|source| RunConfigError::Agent {
                 origin: origin.to_string(),
@@ -157,6 +189,28 @@ impl RunConfig {
                 origin: origin.to_string(),
                 source,
             })
+    }
+
+    /// Extra values per transition of each level ([`hac_core::Transition::extra`]) on `spec`,
+    /// level 0 first: none for HAC; HIRO's high level stores its packed low-level steps.
+    pub fn extra_widths(&self, spec: &hac_core::EnvSpec) -> Vec<usize> {
+        match &self.hiro {
+            None => vec![0; self.levels],
+            Some(h) => {
+                let shape = hac_core::hiro::StepsShape {
+                    c: h.c,
+                    state: spec.state_dim,
+                    goal: spec.subgoal_dim(),
+                    action: spec.action_dim(),
+                };
+                vec![0, shape.width()]
+            }
+        }
+    }
+
+    /// HIRO's settings if the run trains HIRO.
+    pub fn hiro(&self) -> Option<&HiroConfig> {
+        self.hiro.as_ref()
     }
 
     /// Whether the environment is a grid world, learned by the tabular learner rather than the

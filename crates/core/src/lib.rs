@@ -18,6 +18,7 @@
 pub mod bounds;
 pub mod config;
 pub mod env;
+pub mod episodes;
 pub mod hiro;
 pub mod limits;
 pub mod rates;
@@ -27,6 +28,7 @@ pub mod transition;
 
 pub use bounds::{Bounds, within, within_goal};
 pub use config::{AgentConfig, ConfigError, Noise};
+pub use episodes::Episodes;
 pub use env::{Env, EnvSpec, LevelDims, Mode, StateError, horizon_covering};
 pub use limits::{LimitError, TransitionLimits};
 pub use rng::Rng;

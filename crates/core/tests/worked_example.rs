@@ -32,6 +32,7 @@ fn t(
         next_state: vec![s2],
         goal: vec![g],
         terminal: term,
+        extra: Vec::new(),
     }
 }
 

@@ -36,7 +36,7 @@ use std::time::{Duration, Instant};
 
 use hac_agent::{Agent, RoundReport, RunConfig};
 use hac_core::{EnvSpec, Rng};
-use hac_nn::{LearnerConfig, LevelLearner, UpdateStats};
+use hac_nn::{LevelModel, UpdateStats};
 use hac_proto::{ActorRole, WeightsSnapshot};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
 use parking_lot::Mutex;
@@ -91,7 +91,7 @@ fn invalid(file: impl Into<String>, message: impl ToString) -> CheckpointError {
 /// One level's state, taken by its trainer between two updates (or after it stopped).
 #[derive(Debug, Clone)]
 pub(crate) struct LevelSnapshot {
-    learner: LevelLearner,
+    learner: LevelModel,
     rng: Rng,
     limiter: RateLimiterCounts,
     covered_episodes: u64,
@@ -384,12 +384,12 @@ impl LearnerCheckpoint {
         run: &RunConfig,
         spec: &EnvSpec,
         level: usize,
-    ) -> Result<LevelLearner, CheckpointError> {
+    ) -> Result<LevelModel, CheckpointError> {
         let bytes = self.levels.get(level).ok_or(CheckpointError::Missing {
             file: level_file(level),
         })?;
-        let config = LearnerConfig::for_level(&run.agent, spec, level);
-        LevelLearner::from_safetensors(config, bytes).map_err(|e| invalid(level_file(level), e))
+        LevelModel::from_safetensors(&run.agent, run.hiro(), spec, level, bytes)
+            .map_err(|e| invalid(level_file(level), e))
     }
 
     /// The checkpoint's files: `learner.json`, `level<i>.safetensors` and, with the replay,
@@ -466,7 +466,7 @@ impl LearnerCheckpoint {
         run: &RunConfig,
         digest: &str,
         spec: &EnvSpec,
-        learners: &mut [LevelLearner],
+        learners: &mut [LevelModel],
         rngs: &mut [Rng],
         replay: &Replay,
         limiters: &[RateLimiter],
@@ -635,7 +635,7 @@ impl FinishedRun {
 
 impl Shared {
     /// The trainer of `level`, between two updates: answers a checkpoint request.
-    pub(crate) fn serve_snapshot(&self, level: usize, learner: &LevelLearner, rng: &Rng) {
+    pub(crate) fn serve_snapshot(&self, level: usize, learner: &LevelModel, rng: &Rng) {
         let (covered_episodes, last) = {
             let slot = self.slots[level].lock();
             (slot.covered_episodes, slot.last)

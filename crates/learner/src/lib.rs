@@ -39,6 +39,7 @@
 
 mod best;
 mod checkpoint;
+mod hiro;
 pub mod wal;
 
 use std::collections::{BTreeMap, HashMap};
@@ -49,13 +50,14 @@ use std::time::{Duration, Instant};
 
 use hac_agent::{Agent, LevelReport, RoundReport, RunConfig};
 use hac_core::{Batch, EnvSpec, LevelDims, LimitError, Rng, TransitionLimits};
-use hac_nn::{Diverged, LearnerBackup, LevelLearner, UpdateStats};
+use hac_nn::{Diverged, LearnerBackup, LevelModel, UpdateStats};
 use hac_proto::{
     ActorRole, Admission, Evaluation, IngestItemRef, IngestMessage, IngestRef, PreviousIncarnation,
     Registration, WeightsSnapshot, WireError, check_batch,
 };
 use hac_replay::{
-    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
+    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, ReplayTable,
+    WaitError,
 };
 use parking_lot::{Condvar, Mutex, RwLock};
 use sha2::{Digest, Sha256};
@@ -571,7 +573,7 @@ struct Shared {
 #[derive(Debug)]
 pub struct Learner {
     shared: Arc<Shared>,
-    trainers: Mutex<Vec<JoinHandle<(LevelLearner, Rng)>>>,
+    trainers: Mutex<Vec<JoinHandle<(LevelModel, Rng)>>>,
 }
 
 /// A status snapshot of one level.
@@ -702,12 +704,27 @@ impl Learner {
         let dims: Vec<LevelDims> = (0..config.levels)
             .map(|l| spec.level_dims(l, config.levels))
             .collect();
-        let replay = Replay::for_agent(&spec, config, run.replay_shards);
-        let limits = (0..config.levels)
-            .map(|level| {
-                TransitionLimits::for_level(&spec, level, config.levels, config.horizon as f32)
+        let limits: Vec<TransitionLimits> = (0..config.levels)
+            .map(|level| match run.hiro() {
+                None => {
+                    TransitionLimits::for_level(&spec, level, config.levels, config.horizon as f32)
+                }
+                Some(hiro) => TransitionLimits::for_hiro_level(&spec, level, hiro.c),
             })
             .collect();
+        // HAC's tables as always; a HIRO run's high level keeps its low-level steps beside.
+        let replay = Replay::new(
+            (0..config.levels)
+                .map(|level| {
+                    ReplayTable::with_extra(
+                        dims[level],
+                        limits[level].extra_width(),
+                        config.replay_capacity(level),
+                        run.replay_shards,
+                    )
+                })
+                .collect(),
+        );
         let mut limiter_config = RateLimiterConfig::for_agent(config);
         limiter_config.error_buffer =
             options.error_buffer_episodes * limiter_config.updates_per_episode.max(1.0);
@@ -721,7 +738,7 @@ impl Learner {
         // The same streams as the embedded trainer: networks first, then one sampler stream per
         // level.
         let mut root = Rng::seed_from(run.seed);
-        let agent = Agent::new(&spec, config, &mut root);
+        let agent = Agent::for_run(&spec, &run, &mut root);
         let mut level_rngs: Vec<Rng> = (0..config.levels).map(|_| root.fork()).collect();
         let mut learners = agent.into_levels();
         let run_toml = run.to_toml();
@@ -773,7 +790,7 @@ impl Learner {
             publisher: Mutex::new(PublisherState {
                 // Resumed: the next snapshot's version is above every version of the checkpoint.
                 version: resumed.map_or(0, |r| r.weights_version),
-                published_updates: learners.iter().map(LevelLearner::updates).collect(),
+                published_updates: learners.iter().map(LevelModel::updates).collect(),
                 published_episodes: resumed.map_or(0, |r| r.published_episodes),
                 last_publish: Instant::now(),
                 episodes_of: BTreeMap::new(),
@@ -865,7 +882,11 @@ impl Learner {
             .enumerate()
             .map(|(level, (learner, rng))| {
                 let shared = shared.clone();
-                let batch = Batch::zeros(shared.dims[level], batch_size);
+                let batch = Batch::zeros_with_extra(
+                    shared.dims[level],
+                    shared.limits[level].extra_width(),
+                    batch_size,
+                );
                 std::thread::Builder::new()
                     .name(format!("trainer-{level}"))
                     .spawn(move || shared.train_level(level, learner, rng, batch))
@@ -1239,7 +1260,7 @@ impl Learner {
     /// trained agent with the curve and final status.
     pub fn shutdown(self) -> FinishedRun {
         self.shared.finish("shutdown");
-        let (levels, rngs): (Vec<LevelLearner>, Vec<Rng>) = self
+        let (levels, rngs): (Vec<LevelModel>, Vec<Rng>) = self
             .trainers
             .lock()
             .drain(..)
@@ -1517,6 +1538,11 @@ impl Shared {
             max_weights_lag: self.options.max_weights_lag,
             shm: None,
             episodes_in_flight: self.options.episodes_in_flight,
+            extra_widths: if self.limits.iter().all(|l| l.extra_width() == 0) {
+                Vec::new()
+            } else {
+                self.limits.iter().map(TransitionLimits::extra_width).collect()
+            },
         }
     }
 
@@ -1775,14 +1801,21 @@ impl Shared {
     fn train_level(
         &self,
         level: usize,
-        mut learner: LevelLearner,
+        mut learner: LevelModel,
         mut rng: Rng,
         mut batch: Batch,
-    ) -> (LevelLearner, Rng) {
+    ) -> (LevelModel, Rng) {
         let limiter = &self.limiters[level];
         let table = self.replay.table(level);
         let every = self.options.publish_every_updates;
         let mut backup = LearnerBackup::default();
+        let mut hiro = self.run.hiro().map(|h| {
+            let env = self
+                .run
+                .make_env()
+                .expect("the run's environment was made at start");
+            hiro::HiroPrep::new(level, env, h.c, h.candidates)
+        });
         loop {
             if self.snapshots.requested[level].load(Ordering::Acquire) {
                 self.serve_snapshot(level, &learner, &rng);
@@ -1802,7 +1835,14 @@ impl Shared {
                 .expect("an update is granted only once the table holds a batch");
             // A diverged update is undone and still counts as done: the schedule goes on with
             // the last good weights, which are all that is ever published.
-            let outcome = learner.update_or_undo(&batch, &mut backup);
+            let outcome = match (&mut learner, &mut hiro) {
+                (LevelModel::Hac(l), _) => l.update_or_undo(&batch, &mut backup),
+                (LevelModel::Td3(l), Some(prep)) => {
+                    let next_goals = prep.prepare(&mut batch, &self.weights, &mut rng);
+                    l.update_or_undo(&batch, next_goals, &mut rng, &mut backup)
+                }
+                (LevelModel::Td3(_), None) => unreachable!("TD3 levels are HIRO's"),
+            };
             // Whether the level started or stopped failing: reported once its slot is released.
             let failing_changed;
             {
@@ -2149,6 +2189,8 @@ mod tests {
             subgoal_bounds: None,
             agent: hac_envs::make("pendulum").unwrap().default_config(2),
             tabular: None,
+            hiro: None,
+            algo: Default::default(),
         };
         let mut options = LearnerOptions::for_run(&run);
         assert!(options.learner_threads >= 1);

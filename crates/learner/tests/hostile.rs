@@ -37,7 +37,7 @@ struct Raw {
     level: usize,
     count: usize,
     /// Per field: how many values it holds beyond (or short of) what `count` asks.
-    skew: [i8; 6],
+    skew: [i8; 7],
     values: Vec<f32>,
     episode: Option<(u64, bool)>,
 }
@@ -49,7 +49,7 @@ fn raw() -> impl Strategy<Value = Raw> {
         0u64..6,
         0usize..3,
         0usize..12,
-        prop::array::uniform6(prop_oneof![8 => Just(0i8), 1 => -2i8..3]),
+        prop::array::uniform7(prop_oneof![8 => Just(0i8), 1 => -2i8..3]),
         prop::collection::vec(value(), 400),
         prop::option::weighted(0.2, (0u64..2000, any::<bool>())),
     )
@@ -100,6 +100,9 @@ fn message(raw: &Raw, dims: &[LevelDims], incarnations: &[u64]) -> IngestMessage
                         .into_iter()
                         .map(|t| if t > 0.0 { 1.0 } else { 0.0 })
                         .collect(),
+                    // A HAC learner's levels store no extra values: any is refused.
+                    extra_width: 0,
+                    extra: field(&mut v, 0, s[6]),
                 },
             })
         }

@@ -32,6 +32,7 @@ mod error;
 pub mod hiro;
 mod kernels;
 pub mod learner;
+mod level;
 pub mod mlp;
 pub mod policy;
 pub mod td3;
@@ -48,6 +49,7 @@ pub use learner::{
     Diverged, GRADIENT_CHUNKS, LearnerBackup, LearnerConfig, LevelLearner, MIN_CHUNK_SAMPLES,
     PARAMETER_LIMIT, UpdateStats,
 };
+pub use level::LevelModel;
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};
 pub use policy::ExportedPolicy;
 pub use td3::{Td3Config, Td3Learner};

@@ -142,6 +142,11 @@ impl Td3Learner {
         &self.actor
     }
 
+    /// The greedy action `pi(state, goal)`, written into `out`.
+    pub fn act(&mut self, state: &[f32], goal: &[f32], out: &mut [f32]) {
+        self.actor.act(state, goal, out);
+    }
+
     /// Critic updates done so far.
     pub fn updates(&self) -> u64 {
         self.critic_opts[0].steps()

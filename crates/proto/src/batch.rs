@@ -428,8 +428,9 @@ mod tests {
             any::<prop::sample::Index>(),
             any::<u64>(),
             1usize..65,
+            0usize..4,
         )
-            .prop_flat_map(|(dims, level, version, len)| {
+            .prop_flat_map(|(dims, level, version, len, extra_width)| {
                 let level = level.index(dims.len());
                 let d = dims[level];
                 (
@@ -439,9 +440,10 @@ mod tests {
                     floats(d.state * len),
                     floats(d.goal * len),
                     proptest::collection::vec(any::<bool>(), len),
+                    floats(extra_width * len),
                 )
                     .prop_map(
-                        move |(states, actions, rewards, next_states, goals, terminals)| {
+                        move |(states, actions, rewards, next_states, goals, terminals, extra)| {
                             let batch = Batch {
                                 dims: d,
                                 len,
@@ -451,6 +453,8 @@ mod tests {
                                 next_states,
                                 goals,
                                 terminals: terminals.into_iter().map(f32::from).collect(),
+                                extra_width,
+                                extra,
                             };
                             (dims.clone(), level, version, batch)
                         },

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
+use hac_core::hiro::{Algo, HiroConfig};
 use hac_core::{AgentConfig, Bounds};
 use hac_tabular::TabularConfig;
 use serde::Deserialize;
@@ -16,6 +17,7 @@ use crate::registry;
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct FileConfig {
+    algo: Option<Algo>,
     env: Option<String>,
     levels: Option<usize>,
     seed: Option<u64>,
@@ -26,6 +28,7 @@ struct FileConfig {
     subgoal_bounds: Option<Bounds>,
     agent: Option<toml::Table>,
     tabular: Option<toml::Table>,
+    hiro: Option<toml::Table>,
     /// The daemons' tables, checked key by key against their flags by [`crate::daemon`]; the
     /// run itself does not read them.
     #[serde(rename = "learner")]
@@ -34,7 +37,7 @@ struct FileConfig {
     _actor: Option<toml::Table>,
 }
 
-/// Checks a config file's top level: only run keys, `[agent]`, `[tabular]` and the daemons'
+/// Checks a config file's top level: only run keys, `[agent]`, `[tabular]`, `[hiro]` and the daemons'
 /// tables, with values of the right types (the rest is checked by [`resolve`] and
 /// [`crate::daemon`]).
 pub(crate) fn check_top_level(table: &toml::Table) -> Result<()> {
@@ -45,6 +48,8 @@ pub(crate) fn check_top_level(table: &toml::Table) -> Result<()> {
 /// Values given on the command line or through `HAC_*` variables (clap reads both).
 #[derive(Debug, Default)]
 pub struct Overrides {
+    /// The algorithm (`hac` when no source names one).
+    pub algo: Option<Algo>,
     pub env: Option<String>,
     pub levels: Option<usize>,
     pub seed: Option<u64>,
@@ -53,8 +58,8 @@ pub struct Overrides {
     pub replay_shards: Option<usize>,
     /// Episode budget replacing the environment's.
     pub max_actions: Option<usize>,
-    /// `KEY=VALUE` agent overrides (`tabular.KEY=VALUE` for the tabular learner), VALUE in TOML
-    /// syntax.
+    /// `KEY=VALUE` agent overrides (`tabular.KEY=VALUE` for the tabular learner,
+    /// `hiro.KEY=VALUE` for HIRO), VALUE in TOML syntax.
     pub set: Vec<String>,
 }
 
@@ -97,10 +102,22 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         bail!("invalid value for `levels`: {levels} (must be 1 to 8)");
     }
 
-    // Agent: environment defaults, then the file's [agent] table, then HAC_AGENT_* variables,
-    // then --set flags; deserialising the merged table rejects unknown keys by name.
-    let mut agent =
-        toml::Table::try_from(env.default_config(levels)).context("encoding default config")?;
+    let algo = flags.algo.or(file_config.algo).unwrap_or_default();
+    if algo == Algo::Hiro && levels != 2 {
+        bail!(
+            "invalid value for `levels`: {levels}: HIRO has exactly 2 levels (`--algo hiro` \
+             needs `--levels 2`)"
+        );
+    }
+
+    // Agent: environment defaults (with HIRO's own where it differs), then the file's [agent]
+    // table, then HAC_AGENT_* variables, then --set flags; deserialising the merged table
+    // rejects unknown keys by name.
+    let mut defaults = env.default_config(levels);
+    if algo == Algo::Hiro {
+        HiroConfig::agent_defaults(&mut defaults);
+    }
+    let mut agent = toml::Table::try_from(defaults).context("encoding default config")?;
     if let Some(table) = file_config.agent {
         for (key, value) in table {
             agent.insert(key, value);
@@ -108,18 +125,22 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
     }
     let mut sets = variables("HAC_AGENT_");
     let mut tabular_sets = variables("HAC_TABULAR_");
+    let mut hiro_sets = variables("HAC_HIRO_");
     let mut tabular_flags = false;
+    let mut hiro_flags = false;
     for kv in &flags.set {
         let (key, value) = kv
             .split_once('=')
             .with_context(|| format!("--set expects KEY=VALUE, got `{kv}`"))?;
         let (key, value) = (key.trim(), value.trim().to_string());
-        match key.strip_prefix("tabular.") {
-            Some(key) => {
-                tabular_sets.push((key.to_string(), value));
-                tabular_flags = true;
-            }
-            None => sets.push((key.trim_start_matches("agent.").to_string(), value)),
+        if let Some(key) = key.strip_prefix("tabular.") {
+            tabular_sets.push((key.to_string(), value));
+            tabular_flags = true;
+        } else if let Some(key) = key.strip_prefix("hiro.") {
+            hiro_sets.push((key.to_string(), value));
+            hiro_flags = true;
+        } else {
+            sets.push((key.trim_start_matches("agent.").to_string(), value));
         }
     }
     for (key, value) in sets {
@@ -156,7 +177,35 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         None
     };
 
+    // HIRO's settings: its defaults, the file's [hiro] table, then HAC_HIRO_* variables and
+    // --set hiro.KEY flags.
+    let hiro = if algo == Algo::Hiro {
+        let mut table =
+            toml::Table::try_from(HiroConfig::default()).context("encoding default config")?;
+        table.extend(file_config.hiro.unwrap_or_default());
+        for (key, value) in hiro_sets {
+            let value = parse_value(&format!("hiro.{key}"), &value)?;
+            table.insert(key, value);
+        }
+        let hiro: HiroConfig = table.try_into().context("in the hiro configuration")?;
+        hiro.validate(levels, &agent)
+            .context("in the hiro configuration")?;
+        Some(hiro)
+    } else {
+        if file_config.hiro.is_some() || hiro_flags {
+            bail!("`hiro` settings apply to `algo = \"hiro\"` only (this run trains HAC)");
+        }
+        None
+    };
+    if hiro.is_some() && registry::is_tabular(&env_name) {
+        bail!(
+            "invalid value for `algo`: HIRO learns continuous tasks; `{env_name}` is a grid \
+             world for the tabular learner"
+        );
+    }
+
     let config = RunConfig {
+        algo,
         env: env_name,
         levels,
         seed: flags.seed.or(file_config.seed).unwrap_or(0),
@@ -173,6 +222,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
         subgoal_bounds: file_config.subgoal_bounds,
         agent,
         tabular,
+        hiro,
     };
     if config.replay_shards == 0 {
         bail!("invalid value for `replay_shards`: must be at least 1");

@@ -45,6 +45,8 @@ fn run_config() -> RunConfig {
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     }
 }
 

@@ -42,6 +42,8 @@ fn run_config(seed: u64) -> RunConfig {
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     }
 }
 

@@ -153,6 +153,8 @@ pub fn bench_run() -> Result<RunConfig> {
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     })
 }
 

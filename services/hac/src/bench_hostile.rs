@@ -362,6 +362,7 @@ fn random_batch(
         next_states: values(dims.state),
         goals: values(dims.goal),
         terminals: vec![0; count],
+        extra: Vec::new(),
     }
 }
 

@@ -1,13 +1,16 @@
-//! `hac experiment`: a grid of level counts x seeds, run `--jobs` at a time, summarised the way the
-//! paper shows results: one plot per environment with the mean test success and a +- 1 standard
-//! deviation band per level count, and a markdown table.
+//! `hac experiment`: a grid of environments x algorithms x level counts x seeds, run `--jobs` at
+//! a time, summarised the way the paper shows results: one plot per environment with the mean
+//! test success and a +- 1 standard deviation band per algorithm and level count (Figure 3:
+//! level counts; Figure 4: HAC against HIRO), and a markdown table.
 //!
 //! Output directory layout:
-//! - `<env>-<k>l-seed<s>/`: one run directory per run, exactly as `hac train` writes it;
-//! - `<env>.svg`: the learning curves, mean +- 1 std over seeds, one curve per level count;
-//! - `summary.md`: per level count, episodes to 50% and 90% (the median seed's, a seed that
-//!   never got there counting as the slowest, so "never" unless at least half did; and how many
-//!   did), final success (mean +- std), wall time.
+//! - `<env>-<k>l-seed<s>/` (HAC) and `<env>-hiro-<k>l-seed<s>/` (HIRO): one run directory per
+//!   run, exactly as `hac train` writes it;
+//! - `<env>.svg`: the learning curves, mean +- 1 std over seeds, one curve per algorithm and
+//!   level count;
+//! - `summary.md`: per environment, algorithm and level count, episodes to 50% and 90% (the
+//!   median seed's, a seed that never got there counting as the slowest, so "never" unless at
+//!   least half did; and how many did), final success (mean +- std), wall time.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -17,6 +20,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use hac_actor::train_embedded;
 use hac_agent::RoundReport;
+use hac_core::hiro::Algo;
 
 use crate::config::{self, RunConfig};
 use crate::plot;
@@ -26,7 +30,8 @@ use crate::tabular_cmd;
 /// What to run.
 #[derive(Debug)]
 pub struct Grid {
-    pub env: String,
+    pub envs: Vec<String>,
+    pub algos: Vec<Algo>,
     pub levels: Vec<usize>,
     pub seeds: u64,
     pub episodes: Option<u64>,
@@ -52,6 +57,18 @@ pub fn run(grid: Grid) -> Result<()> {
     if grid.levels.is_empty() {
         bail!("invalid value for `--levels`: give at least one level count, e.g. 1,2,3");
     }
+    if grid.envs.is_empty() {
+        bail!("invalid value for `--env`: give at least one environment, e.g. pendulum");
+    }
+    if grid.algos.is_empty() {
+        bail!("invalid value for `--algo`: give at least one algorithm, e.g. hac,hiro");
+    }
+    if grid.algos.contains(&Algo::Hiro) && grid.levels != [2] {
+        bail!(
+            "invalid value for `--levels`: HIRO has exactly 2 levels; with `--algo` naming hiro, \
+             pass `--levels 2`"
+        );
+    }
     if grid.seeds == 0 {
         bail!("invalid value for `--seeds`: must be at least 1");
     }
@@ -60,21 +77,26 @@ pub fn run(grid: Grid) -> Result<()> {
     }
     // Resolve (and so validate) every run's configuration before starting any.
     let mut runs = Vec::new();
-    for &levels in &grid.levels {
-        for seed in 0..grid.seeds {
-            let config = config::resolve(
-                grid.config.as_deref(),
-                config::Overrides {
-                    env: Some(grid.env.clone()),
-                    levels: Some(levels),
-                    seed: Some(seed),
-                    episodes: grid.episodes,
-                    max_actions: grid.max_actions,
-                    set: grid.set.clone(),
-                    ..Default::default()
-                },
-            )?;
-            runs.push(config);
+    for env in &grid.envs {
+        for &algo in &grid.algos {
+            for &levels in &grid.levels {
+                for seed in 0..grid.seeds {
+                    let config = config::resolve(
+                        grid.config.as_deref(),
+                        config::Overrides {
+                            algo: Some(algo),
+                            env: Some(env.clone()),
+                            levels: Some(levels),
+                            seed: Some(seed),
+                            episodes: grid.episodes,
+                            max_actions: grid.max_actions,
+                            set: grid.set.clone(),
+                            ..Default::default()
+                        },
+                    )?;
+                    runs.push(config);
+                }
+            }
         }
     }
     if !grid.overwrite {
@@ -92,8 +114,13 @@ pub fn run(grid: Grid) -> Result<()> {
     std::fs::create_dir_all(&grid.out)
         .with_context(|| format!("creating {}", grid.out.display()))?;
     println!(
-        "experiment: {} with levels {:?} x {} seeds = {} runs, {} at a time; writing {}",
-        grid.env,
+        "experiment: {} x {} with levels {:?} x {} seeds = {} runs, {} at a time; writing {}",
+        grid.envs.join(","),
+        grid.algos
+            .iter()
+            .map(|a| a.name())
+            .collect::<Vec<_>>()
+            .join(","),
         grid.levels,
         grid.seeds,
         runs.len(),
@@ -118,8 +145,10 @@ pub fn run(grid: Grid) -> Result<()> {
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
                     match &result {
                         Ok(f) => println!(
-                            "[{n}/{}] {} level{}, seed {}: final {:.1}%, 90% {}, {:.1}s",
+                            "[{n}/{}] {} {} {} level{}, seed {}: final {:.1}%, 90% {}, {:.1}s",
                             runs.len(),
+                            f.config.env,
+                            f.config.algo,
                             f.config.levels,
                             if f.config.levels == 1 { "" } else { "s" },
                             f.config.seed,
@@ -145,36 +174,46 @@ pub fn run(grid: Grid) -> Result<()> {
         .into_iter()
         .collect::<Result<_>>()?;
 
-    let groups = group_by_levels(&grid.levels, &finished);
-    let svg = plot::success_chart(
-        &format!(
-            "{}: mean test success +- 1 std over {} seeds",
-            grid.env, grid.seeds
-        ),
-        "training episodes",
-        &groups
-            .iter()
-            .map(|(k, runs)| series(*k, runs))
-            .collect::<Vec<_>>(),
-    );
-    let svg_path = grid.out.join(format!("{}.svg", grid.env));
-    std::fs::write(&svg_path, svg).with_context(|| format!("writing {}", svg_path.display()))?;
-    let table = summary_table(&grid.env, &groups);
+    // Name the algorithm wherever it is not HAC alone.
+    let named = grid.algos != [Algo::Hac];
+    let mut tables = String::new();
+    let mut svgs = Vec::new();
+    for env in &grid.envs {
+        let groups = group(env, &grid.algos, &grid.levels, &finished);
+        let svg = plot::success_chart(
+            &format!("{env}: mean test success +- 1 std over {} seeds", grid.seeds),
+            "training episodes",
+            &groups
+                .iter()
+                .map(|(algo, k, runs)| series(*algo, *k, named, runs))
+                .collect::<Vec<_>>(),
+        );
+        let svg_path = grid.out.join(format!("{env}.svg"));
+        std::fs::write(&svg_path, svg)
+            .with_context(|| format!("writing {}", svg_path.display()))?;
+        svgs.push(svg_path.display().to_string());
+        tables.push_str(&summary_table(env, named, &groups));
+        tables.push('\n');
+    }
     let md_path = grid.out.join("summary.md");
-    std::fs::write(&md_path, &table).with_context(|| format!("writing {}", md_path.display()))?;
-    println!("{table}");
+    std::fs::write(&md_path, &tables).with_context(|| format!("writing {}", md_path.display()))?;
+    println!("{tables}");
     println!(
         "done in {:.1}s: {} and {}",
         started.elapsed().as_secs_f64(),
-        svg_path.display(),
+        svgs.join(", "),
         md_path.display()
     );
     Ok(())
 }
 
 fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
+    let algo = match config.algo {
+        Algo::Hac => String::new(),
+        other => format!("{other}-"),
+    };
     out.join(format!(
-        "{}-{}l-seed{}",
+        "{}-{algo}{}l-seed{}",
         config.env, config.levels, config.seed
     ))
 }
@@ -212,15 +251,33 @@ fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Fin
     })
 }
 
-fn group_by_levels<'a>(levels: &[usize], runs: &'a [Finished]) -> Vec<(usize, Vec<&'a Finished>)> {
-    levels
-        .iter()
-        .map(|&k| {
-            let mut group: Vec<&Finished> = runs.iter().filter(|r| r.config.levels == k).collect();
+/// The runs of `env`, grouped by algorithm and level count in the order given, each group by
+/// seed.
+type Group<'a> = (Algo, usize, Vec<&'a Finished>);
+
+fn group<'a>(env: &str, algos: &[Algo], levels: &[usize], runs: &'a [Finished]) -> Vec<Group<'a>> {
+    let mut groups = Vec::new();
+    for &algo in algos {
+        for &k in levels {
+            let mut group: Vec<&Finished> = runs
+                .iter()
+                .filter(|r| r.config.env == env && r.config.algo == algo && r.config.levels == k)
+                .collect();
             group.sort_by_key(|r| r.config.seed);
-            (k, group)
-        })
-        .collect()
+            groups.push((algo, k, group));
+        }
+    }
+    groups
+}
+
+/// A group's name in plots and tables: the level count, after the algorithm when `named`.
+fn label(algo: Algo, levels: usize, named: bool) -> String {
+    let k = format!("{levels} level{}", if levels == 1 { "" } else { "s" });
+    if named {
+        format!("{} {k}", algo.name().to_uppercase())
+    } else {
+        k
+    }
 }
 
 /// Mean and population standard deviation.
@@ -232,7 +289,7 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
 }
 
 /// The mean curve with its +- 1 std band, over the rounds every run of the group reached.
-fn series(levels: usize, runs: &[&Finished]) -> plot::Series {
+fn series(algo: Algo, levels: usize, named: bool, runs: &[&Finished]) -> plot::Series {
     let rounds = runs.iter().map(|r| r.curve.len()).min().unwrap_or(0);
     let mut points = Vec::with_capacity(rounds);
     let mut band = Vec::with_capacity(rounds);
@@ -246,17 +303,23 @@ fn series(levels: usize, runs: &[&Finished]) -> plot::Series {
         band.push(((mean - std).max(0.0), (mean + std).min(1.0)));
     }
     plot::Series {
-        label: format!("{levels} level{}", if levels == 1 { "" } else { "s" }),
+        label: label(algo, levels, named),
         points,
         band: Some(band),
     }
 }
 
-fn summary_table(env: &str, groups: &[(usize, Vec<&Finished>)]) -> String {
+fn summary_table(env: &str, named: bool, groups: &[Group<'_>]) -> String {
+    let first = if named { "algorithm, levels" } else { "levels" };
     let mut s = format!(
-        "## {env}\n\n| levels | seeds | episodes to 50% (median seed; seeds that got there) | episodes to 90% (median seed; seeds that got there) | final success (mean +- std) | wall time per run (mean) |\n| --- | --- | --- | --- | --- | --- |\n"
+        "## {env}\n\n| {first} | seeds | episodes to 50% (median seed; seeds that got there) | episodes to 90% (median seed; seeds that got there) | final success (mean +- std) | wall time per run (mean) |\n| --- | --- | --- | --- | --- | --- |\n"
     );
-    for (k, runs) in groups {
+    for (algo, k, runs) in groups {
+        let name = if named {
+            label(*algo, *k, true)
+        } else {
+            k.to_string()
+        };
         let to = |f: fn(&Summary) -> Option<u64>| {
             let mut hits: Vec<u64> = runs.iter().filter_map(|r| f(&r.summary)).collect();
             hits.sort_unstable();
@@ -277,7 +340,7 @@ fn summary_table(env: &str, groups: &[(usize, Vec<&Finished>)]) -> String {
                 .collect::<Vec<_>>(),
         );
         s.push_str(&format!(
-            "| {k} | {} | {} | {} | {:.1}% +- {:.1} | {wall:.1} s |\n",
+            "| {name} | {} | {} | {} | {:.1}% +- {:.1} | {wall:.1} s |\n",
             runs.len(),
             to(|s| s.episodes_to_50),
             to(|s| s.episodes_to_90),

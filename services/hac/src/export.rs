@@ -105,7 +105,7 @@ fn load(args: &ExportArgs) -> Result<Source> {
     }
     let run = neural_run(args)?;
     let env = run.make_env()?;
-    let agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+    let agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run)
         .context("loading the run's weights")?;
     // The learner daemon records the final version in the summary; `hac train` has none.
     let weights_version = std::fs::read_to_string(args.run.join("summary.json"))

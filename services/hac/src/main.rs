@@ -265,9 +265,12 @@ struct HostileArgs {
 
 #[derive(Debug, Args)]
 struct ExperimentArgs {
-    /// Built-in environment (see `hac env list`).
-    #[arg(long)]
-    env: String,
+    /// Built-in environments, comma-separated (see `hac env list`).
+    #[arg(long, value_delimiter = ',', required = true)]
+    env: Vec<String>,
+    /// Algorithms to compare, comma-separated: hac, hiro (HIRO: 2 levels only).
+    #[arg(long, value_delimiter = ',', default_value = "hac")]
+    algo: Vec<hac_core::hiro::Algo>,
     /// Level counts to compare, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
     levels: Vec<usize>,
@@ -334,6 +337,9 @@ enum EnvCommand {
 
 #[derive(Debug, Args)]
 struct TrainArgs {
+    /// Algorithm: hac, or hiro (the HAC paper's baseline; 2 levels only) [default: hac].
+    #[arg(long, env = "HAC_ALGO")]
+    algo: Option<hac_core::hiro::Algo>,
     /// Built-in environment: pendulum, ur5-reacher, mountain-car, cartpole, pick-and-place, or a
     /// grid world
     /// (four-rooms, four-rooms-25; learned by tabular HAC) [default: pendulum].
@@ -444,10 +450,11 @@ fn main() {
         Command::Eval(args) => eval(args),
         Command::Experiment(args) => hac_run::signals::interrupt_flag().and_then(|interrupt| {
             experiment::run(experiment::Grid {
-                out: args
-                    .out
-                    .unwrap_or_else(|| PathBuf::from(format!("runs/experiment-{}", args.env))),
-                env: args.env,
+                out: args.out.unwrap_or_else(|| {
+                    PathBuf::from(format!("runs/experiment-{}", args.env.join("-")))
+                }),
+                envs: args.env,
+                algos: args.algo,
                 levels: args.levels,
                 seeds: args.seeds,
                 episodes: args.episodes,
@@ -554,6 +561,7 @@ fn train(args: TrainArgs) -> Result<()> {
     let run = config::resolve(
         args.config.as_deref(),
         config::Overrides {
+            algo: args.algo,
             env: args.env,
             levels: args.levels,
             seed: args.seed,
@@ -636,19 +644,19 @@ fn eval(args: EvalArgs) -> Result<()> {
         hac_agent::evaluate(
             env.as_mut(),
             &mut policy,
-            &run.agent,
+            &run,
             episodes,
             args.seed,
             on_episode,
         )
     } else {
         let mut env = run.make_env()?;
-        let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run.agent)
+        let mut agent = Agent::load(&run_dir::weights_dir(&args.run), env.spec(), &run)
             .context("loading the run's weights")?;
         hac_agent::evaluate(
             env.as_mut(),
             &mut agent,
-            &run.agent,
+            &run,
             episodes,
             args.seed,
             on_episode,

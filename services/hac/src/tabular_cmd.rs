@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use hac_agent::{LevelReport, RoundReport};
-use hac_core::{Env, EpisodeOutcome, Hierarchy, Rng};
+use hac_core::{Env, Episodes, EpisodeOutcome, Hierarchy, Rng};
 use hac_tabular::{FourRooms, TabularAgent, TabularHac};
 
 use crate::config::RunConfig;
@@ -176,9 +176,9 @@ pub fn evaluate(
     let mut rng = Rng::seed_from(seed);
     // Never consulted in test mode, where every level acts greedily.
     let mut exploration = agent.exploration(&run.agent, rng.fork());
-    let mut hierarchy = Hierarchy::new(env.spec(), &run.agent);
+    let mut rollout = Episodes::Hac(Hierarchy::new(env.spec(), &run.agent));
     Ok(hac_agent::test_episodes(
-        &mut hierarchy,
+        &mut rollout,
         &mut env,
         &mut agent,
         &mut exploration,

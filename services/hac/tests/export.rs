@@ -134,7 +134,7 @@ fn an_exported_policy_reproduces_the_runs_actions_without_this_project() {
     // The run's own networks, through the project's code.
     let config = RunConfig::load_run(&run).unwrap();
     let env = hac_envs::make("pendulum").unwrap();
-    let agent = Agent::load(&run.join("weights"), env.spec(), &config.agent).unwrap();
+    let agent = Agent::load(&run.join("weights"), env.spec(), &config).unwrap();
     let mut rng = Rng::seed_from(11);
     for level in 0..levels {
         let exported = read_level(&st, level);

@@ -51,6 +51,9 @@ use crate::checkpoint::{CheckpointArgs, Checkpoints, Start};
 /// The learner daemon's flags (also `hac learner`'s).
 #[derive(Debug, clap::Args)]
 pub struct LearnerArgs {
+    /// Algorithm: hac, or hiro (the HAC paper's baseline; 2 levels only) [default: hac].
+    #[arg(long, env = "HAC_ALGO")]
+    pub algo: Option<hac_core::hiro::Algo>,
     /// Built-in environment: pendulum, ur5-reacher, mountain-car, cartpole, pick-and-place
     /// [default: pendulum].
     #[arg(long, env = "HAC_ENV")]
@@ -213,6 +216,7 @@ impl LearnerArgs {
         config::resolve(
             self.config.path.as_deref(),
             config::Overrides {
+                algo: self.algo,
                 env: self.env.clone(),
                 levels: self.levels,
                 seed: self.seed,

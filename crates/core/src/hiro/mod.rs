@@ -20,8 +20,10 @@
 use crate::Rng;
 use crate::bounds::angle_difference;
 
+mod config;
 mod rollout;
 
+pub use config::{Algo, HiroConfig};
 pub use rollout::{HighTransition, HiroRollout, HiroSink};
 
 /// `to - from` per dimension, wrapped to `[-pi, pi]` on the dimensions flagged in `angles`.

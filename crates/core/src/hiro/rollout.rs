@@ -19,9 +19,11 @@
 //!
 //! No hindsight at either level: that is the difference the HAC paper's comparison measures.
 
-use crate::hiro::{LowLevelSteps, goal_transition, intrinsic_reward};
+use crate::hiro::{LowLevelSteps, StepsShape, goal_transition, intrinsic_reward};
 use crate::rollout::{EpisodeOutcome, Exploration, Policy};
-use crate::{Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, within_goal};
+use crate::{
+    Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, TransitionSink, within_goal,
+};
 
 /// A high-level transition with the low-level steps it spanned, borrowed from the rollout.
 #[derive(Debug, Clone, Copy)]
@@ -63,6 +65,8 @@ pub struct HiroRollout {
     end_projection: Vec<f32>,
     action: Vec<f32>,
     segment: Segment,
+    /// A high-level transition's steps, packed for [`HiroRollout::run_episode_packed`].
+    packed: Vec<f32>,
 }
 
 /// The current high-level decision and its steps so far.
@@ -96,7 +100,46 @@ impl HiroRollout {
             end_projection: vec![0.0; spec.end_goal_dim],
             action: vec![0.0; spec.action_dim()],
             segment: Segment::default(),
+            packed: vec![0.0; Self::shape_of(spec, c).width()],
         }
+    }
+
+    fn shape_of(spec: &EnvSpec, c: usize) -> StepsShape {
+        StepsShape {
+            c,
+            state: spec.state_dim,
+            goal: spec.subgoal_dim(),
+            action: spec.action_dim(),
+        }
+    }
+
+    /// The shape of the high level's packed steps ([`Transition::extra`] of its transitions).
+    pub fn steps_shape(&self) -> StepsShape {
+        Self::shape_of(&self.spec, self.c)
+    }
+
+    /// [`run_episode`](Self::run_episode) into a [`TransitionSink`], as HAC's rollout feeds
+    /// one: low-level transitions as level 0's, high-level ones as level 1's with their steps
+    /// packed into [`Transition::extra`] ([`LowLevelSteps::pack`]).
+    pub fn run_episode_packed(
+        &mut self,
+        env: &mut dyn Env,
+        policy: &mut dyn Policy,
+        exploration: &mut dyn Exploration,
+        mode: Mode,
+        rng: &mut Rng,
+        sink: &mut dyn TransitionSink,
+    ) -> EpisodeOutcome {
+        let shape = self.steps_shape();
+        let mut packed = std::mem::take(&mut self.packed);
+        let mut packing = Packing {
+            sink,
+            shape,
+            packed: &mut packed,
+        };
+        let outcome = self.run_episode(env, policy, exploration, mode, rng, &mut packing);
+        self.packed = packed;
+        outcome
     }
 
     /// The box of the high level's relative goals (its output bounds).
@@ -217,5 +260,29 @@ impl HiroRollout {
             }
         }
         EpisodeOutcome { success, steps }
+    }
+}
+
+/// Forwards HIRO's transitions to a [`TransitionSink`], packing the high level's steps.
+struct Packing<'a> {
+    sink: &'a mut dyn TransitionSink,
+    shape: StepsShape,
+    packed: &'a mut Vec<f32>,
+}
+
+impl HiroSink for Packing<'_> {
+    fn push_low(&mut self, transition: &Transition<'_>) {
+        self.sink.push(0, transition);
+    }
+
+    fn push_high(&mut self, high: &HighTransition<'_>) {
+        high.steps.pack(self.shape, self.packed);
+        self.sink.push(
+            1,
+            &Transition {
+                extra: self.packed,
+                ..high.transition
+            },
+        );
     }
 }

@@ -19,5 +19,7 @@ pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
         subgoal_bounds: None,
         agent,
         tabular: None,
+        hiro: None,
+        algo: Default::default(),
     }
 }

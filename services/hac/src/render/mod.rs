@@ -124,7 +124,7 @@ fn load_policy(
         return Ok((Box::new(env), Box::new(agent)));
     }
     let env = run.make_env()?;
-    let agent = Agent::load(&run_dir::weights_dir(run_dir), env.spec(), &run.agent)
+    let agent = Agent::load(&run_dir::weights_dir(run_dir), env.spec(), &run)
         .context("loading the run's weights")?;
     Ok((env, Box::new(agent)))
 }

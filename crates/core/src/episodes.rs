@@ -1,0 +1,51 @@
+//! [`Episodes`]: the episode runner of a run's algorithm, HAC's hierarchy or HIRO's two levels,
+//! behind one call.
+
+use crate::hiro::{HiroConfig, HiroRollout};
+use crate::rollout::{EpisodeOutcome, Exploration, Hierarchy, Policy};
+use crate::{AgentConfig, Env, EnvSpec, Mode, Rng, TransitionSink};
+
+/// Runs episodes of the run's algorithm; owns every buffer an episode needs.
+#[derive(Debug)]
+pub enum Episodes {
+    /// HAC (Levy et al., 2019): Algorithm 1 through every level.
+    Hac(Hierarchy),
+    /// HIRO (Nachum et al., 2018): its two levels, the high level's steps packed into its
+    /// transitions' [`crate::Transition::extra`].
+    Hiro(HiroRollout),
+}
+
+impl Episodes {
+    /// HIRO's rollout when `hiro` is given, else HAC's hierarchy for `config`.
+    pub fn new(spec: &EnvSpec, config: &AgentConfig, hiro: Option<&HiroConfig>) -> Self {
+        match hiro {
+            None => Self::Hac(Hierarchy::new(spec, config)),
+            Some(h) => Self::Hiro(HiroRollout::new(spec, h.c)),
+        }
+    }
+
+    /// Resets `env`, draws an end goal for `mode` and plays one episode; in `Mode::Train`
+    /// every transition goes to `sink`, tagged with its level.
+    pub fn run_episode(
+        &mut self,
+        env: &mut dyn Env,
+        policy: &mut dyn Policy,
+        exploration: &mut dyn Exploration,
+        mode: Mode,
+        rng: &mut Rng,
+        sink: &mut dyn TransitionSink,
+    ) -> EpisodeOutcome {
+        match self {
+            Self::Hac(h) => h.run_episode(env, policy, exploration, mode, rng, sink),
+            Self::Hiro(h) => h.run_episode_packed(env, policy, exploration, mode, rng, sink),
+        }
+    }
+
+    /// The end goal of the current (or last) episode.
+    pub fn end_goal(&self) -> &[f32] {
+        match self {
+            Self::Hac(h) => h.end_goal(),
+            Self::Hiro(h) => h.end_goal(),
+        }
+    }
+}

@@ -1,0 +1,154 @@
+//! HIRO's settings, and which of the run's shared settings it reads.
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+use crate::{AgentConfig, ConfigError, Noise};
+
+/// The algorithm a run trains: HAC (the default) or HIRO, the HAC paper's baseline.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Algo {
+    /// Hierarchical Actor-Critic (Levy et al., 2019): any number of levels.
+    #[default]
+    Hac,
+    /// HIRO (Nachum et al., 2018): exactly 2 levels, TD3 at both.
+    Hiro,
+}
+
+impl Algo {
+    /// Every algorithm, as named on the command line.
+    pub const ALL: [Algo; 2] = [Algo::Hac, Algo::Hiro];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Algo::Hac => "hac",
+            Algo::Hiro => "hiro",
+        }
+    }
+
+    pub fn is_hac(&self) -> bool {
+        *self == Algo::Hac
+    }
+}
+
+impl fmt::Display for Algo {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Algo {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|a| a.name() == s)
+            .ok_or_else(|| format!("unknown algorithm `{s}` (known: hac, hiro)"))
+    }
+}
+
+/// HIRO's own settings (`[hiro]` in a run config). What it shares with HAC comes from
+/// `[agent]`: the hidden layers, gamma, learning rates, batch size, updates per episode, the
+/// target networks' rate (`target_tau`), the exploration noise of each level (`action_noise`,
+/// `subgoal_noise`) and the replay capacity. [`HiroConfig::agent_defaults`] sets those to
+/// HIRO's reference values; HAC's own keys (horizon, subgoal testing, hindsight goals, random
+/// actions) are not read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HiroConfig {
+    /// c: primitive steps between the high level's decisions.
+    pub c: usize,
+    /// Gaussian candidates the off-policy correction draws beside the stored goal and the
+    /// achieved displacement (HIRO: 8, so 10 in all); 0 turns the correction off (the stored
+    /// goal or the displacement only).
+    pub candidates: usize,
+    /// TD3's target smoothing noise, a fraction of each output's half range.
+    pub policy_noise: f32,
+    /// The smoothing noise is clipped to this fraction of the half range.
+    pub noise_clip: f32,
+    /// The actor and the targets move once per this many critic updates.
+    pub policy_delay: u64,
+}
+
+impl Default for HiroConfig {
+    /// The HIRO paper's values: c = 10, 8 random candidates, smoothing 0.2 clipped to 0.5,
+    /// the actor every 2nd update.
+    fn default() -> Self {
+        Self {
+            c: 10,
+            candidates: 8,
+            policy_noise: 0.2,
+            noise_clip: 0.5,
+            policy_delay: 2,
+        }
+    }
+}
+
+impl HiroConfig {
+    /// HIRO's reference values for the settings it shares with HAC: gamma 0.99, actor lr
+    /// 1e-4, critic lr 1e-3, batch 100, target networks at rate 0.005, Gaussian noise of 0.1
+    /// of the half range at both levels, no random actions. Hidden layers, updates per
+    /// episode and replay capacity stay as they are (the same networks and schedule as HAC,
+    /// so that a comparison measures the algorithms).
+    pub fn agent_defaults(agent: &mut AgentConfig) {
+        agent.gamma = 0.99;
+        agent.actor_lr = 1e-4;
+        agent.critic_lr = 1e-3;
+        agent.batch_size = 100;
+        agent.target_tau = Some(0.005);
+        agent.action_noise = Noise::Relative(0.1);
+        agent.subgoal_noise = Noise::Relative(0.1);
+        agent.random_action_prob = 0.0;
+    }
+
+    /// Checks every field and the run's level count (HIRO has exactly two levels), naming the
+    /// first invalid one.
+    pub fn validate(&self, levels: usize, agent: &AgentConfig) -> Result<(), ConfigError> {
+        if levels != 2 {
+            return Err(ConfigError::invalid(
+                "levels",
+                format!("{levels}: HIRO has exactly 2 levels (`--algo hiro` needs `--levels 2`)"),
+            ));
+        }
+        if agent.target_tau.is_none() {
+            return Err(ConfigError::invalid(
+                "agent.target_tau",
+                "HIRO's TD3 needs target networks: set a rate in (0, 1]".into(),
+            ));
+        }
+        if self.c == 0 || self.c > 1000 {
+            return Err(ConfigError::invalid(
+                "hiro.c",
+                format!("{} (must be 1 to 1000)", self.c),
+            ));
+        }
+        if self.candidates > 1000 {
+            return Err(ConfigError::invalid(
+                "hiro.candidates",
+                format!("{} (at most 1000)", self.candidates),
+            ));
+        }
+        for (key, v) in [
+            ("hiro.policy_noise", self.policy_noise),
+            ("hiro.noise_clip", self.noise_clip),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(ConfigError::invalid(
+                    key,
+                    format!("{v} (must be a finite fraction >= 0)"),
+                ));
+            }
+        }
+        if self.policy_delay == 0 {
+            return Err(ConfigError::invalid(
+                "hiro.policy_delay",
+                "must be at least 1".into(),
+            ));
+        }
+        Ok(())
+    }
+}
