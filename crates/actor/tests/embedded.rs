@@ -128,3 +128,48 @@ fn stop_at_ends_the_run_at_the_first_round_reaching_it() {
     assert!(run.status.finished);
     assert!(run.actor.run_finished);
 }
+
+/// HIRO through the same learner and actor: both levels train (TD3), the high level's
+/// transitions arrive with their low-level steps, and a seed gives the same run bit for bit
+/// (the correction reads the published low-level policy, not the other trainer's progress).
+#[test]
+fn hiro_trains_through_the_learner_and_a_seed_gives_the_same_run() {
+    use hac_core::hiro::{Algo, HiroConfig};
+    let mut config = run_config("pendulum", 3, 6, 2);
+    HiroConfig::agent_defaults(&mut config.agent);
+    config.agent.exploration_episodes = 3;
+    config.algo = Algo::Hiro;
+    // A twentieth of HIRO's update rate keeps the debug build quick: 50 low-level and 5
+    // high-level updates per 1000-step episode.
+    config.hiro = Some(HiroConfig {
+        updates_per_step: 0.05,
+        ..HiroConfig::default()
+    });
+    config.validate("test").unwrap();
+    let a = train(&config);
+    let b = train(&config);
+    assert_eq!(a.curve.len(), 2, "a test round every 3 episodes");
+    assert_eq!(deterministic_part(&a.curve), deterministic_part(&b.curve));
+    assert_eq!(weights(&a), weights(&b));
+    assert_eq!(a.status.episodes, 6);
+    // One low-level transition per primitive action; one high-level transition per c = 10 of
+    // them, and one more for an episode that ended between two decisions.
+    let [low, high] = &a.status.levels[..] else {
+        panic!("two levels");
+    };
+    assert_eq!(low.transitions_inserted, a.status.env_steps);
+    let decisions = low.transitions_inserted / 10;
+    assert!(
+        (decisions..=decisions + 6).contains(&high.transitions_inserted),
+        "{} high-level transitions for {} steps",
+        high.transitions_inserted,
+        low.transitions_inserted
+    );
+    // Both levels had a batch (100) after the first episode: their updates for every episode.
+    assert_eq!((low.updates, high.updates), (6 * 50, 6 * 5));
+    for level in &a.status.levels {
+        assert!(level.last.is_some_and(|s| s.critic_loss.is_finite()));
+        assert_eq!(level.diverged_updates, 0);
+    }
+}
+

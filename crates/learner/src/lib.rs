@@ -725,11 +725,15 @@ impl Learner {
                 })
                 .collect(),
         );
-        let mut limiter_config = RateLimiterConfig::for_agent(config);
-        limiter_config.error_buffer =
-            options.error_buffer_episodes * limiter_config.updates_per_episode.max(1.0);
         let limiters = (0..config.levels)
             .map(|level| {
+                let mut limiter_config = RateLimiterConfig::for_agent(config);
+                if let Some(hiro) = run.hiro() {
+                    limiter_config.updates_per_episode =
+                        hiro.updates_per_episode(level, spec.max_actions);
+                }
+                limiter_config.error_buffer =
+                    options.error_buffer_episodes * limiter_config.updates_per_episode.max(1.0);
                 RateLimiter::new(limiter_config, replay.table(level).capacity())
                     .map_err(|source| StartError::RateLimiter { level, source })
             })

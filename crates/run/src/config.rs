@@ -317,6 +317,61 @@ mod tests {
     }
 
     #[test]
+    fn hiro_takes_its_reference_settings_and_refuses_what_it_cannot_run() {
+        let hiro = |levels, env: &str, set: Vec<String>| {
+            resolve(
+                None,
+                Overrides {
+                    algo: Some(Algo::Hiro),
+                    env: Some(env.into()),
+                    levels: Some(levels),
+                    set,
+                    ..Default::default()
+                },
+            )
+        };
+        let c = hiro(2, "pendulum", vec!["hiro.c=5".into()]).unwrap();
+        assert_eq!(c.algo, Algo::Hiro);
+        let h = c.hiro.as_ref().expect("a [hiro] section");
+        assert_eq!((h.c, h.candidates, h.policy_delay), (5, 8, 2));
+        assert_eq!(
+            (c.agent.batch_size, c.agent.gamma, c.agent.target_tau),
+            (100, 0.99, Some(0.005))
+        );
+        // The resolved config says what it trains, and reads back the same.
+        let text = toml::to_string(&c).unwrap();
+        assert!(text.contains("algo = \"hiro\"") && text.contains("[hiro]"), "{text}");
+        assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), c);
+
+        for (levels, env, set, named) in [
+            (3, "pendulum", vec![], "HIRO has exactly 2 levels"),
+            (1, "pendulum", vec![], "HIRO has exactly 2 levels"),
+            (2, "four-rooms", vec![], "grid world"),
+            (2, "pendulum", vec!["hiro.c=0".into()], "hiro.c"),
+            (2, "pendulum", vec!["hiro.cc=3".into()], "cc"),
+        ] {
+            let e = format!("{:#}", hiro(levels, env, set).unwrap_err());
+            assert!(e.contains(named), "{e}");
+        }
+        // HIRO's settings on a HAC run are refused, not ignored.
+        let e = format!(
+            "{:#}",
+            resolve(
+                None,
+                Overrides {
+                    set: vec!["hiro.c=3".into()],
+                    ..Default::default()
+                },
+            )
+            .unwrap_err()
+        );
+        assert!(e.contains("algo = \"hiro\""), "{e}");
+        // A HAC run's config.toml does not mention the algorithm (the same file as before).
+        let hac = resolve(None, Overrides::default()).unwrap();
+        assert!(!toml::to_string(&hac).unwrap().contains("algo"));
+    }
+
+    #[test]
     fn unknown_and_invalid_keys_are_named() {
         let f = write("levls = 2\n");
         let e = format!(

@@ -342,12 +342,15 @@ impl RunDir {
 /// The line `hac train` prints before training `run` into `out`; `learner` names a learner other
 /// than the neural default (e.g. "tabular Q-learning").
 pub fn training_banner(run: &RunConfig, out: &Path, learner: Option<&str>) -> String {
+    let shape = match run.hiro() {
+        Some(h) => format!("HIRO, c = {}", h.c),
+        None => format!("H = {}", run.agent.horizon),
+    };
     format!(
-        "training {} with {} level{} (H = {}{}), seed {}, {} episodes; test round every {} episodes; writing {}",
+        "training {} with {} level{} ({shape}{}), seed {}, {} episodes; test round every {} episodes; writing {}",
         run.env,
         run.levels,
         if run.levels == 1 { "" } else { "s" },
-        run.agent.horizon,
         learner.map(|l| format!(", {l}")).unwrap_or_default(),
         run.seed,
         run.episodes,

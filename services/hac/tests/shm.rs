@@ -221,3 +221,59 @@ fn two_runs_side_by_side_on_one_host_do_not_see_each_others_data() {
     assert_eq!(a.split('-').next(), b.split('-').next(), "same run digest");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// HIRO on the distributed path: its actors roll HIRO out and stream both levels' transitions,
+/// the high level's with their low-level steps, over shared memory and gRPC at once; the
+/// learner stores every one (none refused) and trains both levels.
+#[test]
+fn hiro_streams_over_shared_memory_and_grpc_and_both_levels_train() {
+    let dir = scratch("hiro");
+    let out = dir.join("out");
+    let args = [
+        "--algo",
+        "hiro",
+        "--env",
+        "pendulum",
+        "--levels",
+        "2",
+        "--episodes",
+        "8",
+        "--set",
+        "test_episodes=2",
+        "--set",
+        "exploration_episodes=4",
+        "--set",
+        "hiro.updates_per_step=0.05",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let (learner, url) = learner(&args, &dir, "learner");
+    let mut processes = Processes(vec![("learner".into(), learner)]);
+    processes.0.push(actor(&url, "shm-0", &["--transport", "shm"], &dir));
+    processes.0.push(actor(&url, "grpc-0", &["--transport", "grpc"], &dir));
+    processes.all_succeed(&dir, DEADLINE);
+
+    let s = summary(&out);
+    assert_exactly_once(&s);
+    assert_eq!(refused_while_running(&s), Vec::<String>::new(), "{s}");
+    assert!(count(&s, "episodes_ingested") >= 8, "{s}");
+    let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(config.contains("algo = \"hiro\""), "{config}");
+    for actor in ["shm-0", "grpc-0"] {
+        let log = log(&dir, actor);
+        assert!(log.contains("actor stopped"), "{actor}:\n{log}");
+    }
+    let shm_log = log(&dir, "shm-0");
+    assert!(shm_log.contains(USING_SHM), "shm-0 did not use shared memory:\n{shm_log}");
+    let curve = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    let last = curve.lines().last().unwrap();
+    // Both levels updated (level 0: 50 per episode, level 1: 5).
+    let header: Vec<&str> = curve.lines().next().unwrap().split(',').collect();
+    let row: Vec<&str> = last.split(',').collect();
+    for level in ["level0_updates", "level1_updates"] {
+        let at = header.iter().position(|h| *h == level).unwrap();
+        let updates: u64 = row[at].parse().unwrap();
+        assert!(updates > 0, "{level} = {updates}\n{curve}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

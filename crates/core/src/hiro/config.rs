@@ -52,11 +52,11 @@ impl FromStr for Algo {
 }
 
 /// HIRO's own settings (`[hiro]` in a run config). What it shares with HAC comes from
-/// `[agent]`: the hidden layers, gamma, learning rates, batch size, updates per episode, the
-/// target networks' rate (`target_tau`), the exploration noise of each level (`action_noise`,
-/// `subgoal_noise`) and the replay capacity. [`HiroConfig::agent_defaults`] sets those to
-/// HIRO's reference values; HAC's own keys (horizon, subgoal testing, hindsight goals, random
-/// actions) are not read.
+/// `[agent]`: the hidden layers, gamma, learning rates, batch size, the target networks' rate
+/// (`target_tau`), the exploration noise of each level (`action_noise`, `subgoal_noise`), the
+/// replay capacity and the test schedule. [`HiroConfig::agent_defaults`] sets those to HIRO's
+/// reference values; HAC's own keys (horizon, subgoal testing, hindsight goals, random
+/// actions) and `updates_per_episode` (HIRO's is [`HiroConfig::updates_per_step`]) are not read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HiroConfig {
@@ -72,6 +72,10 @@ pub struct HiroConfig {
     pub noise_clip: f32,
     /// The actor and the targets move once per this many critic updates.
     pub policy_delay: u64,
+    /// Updates per primitive step: HIRO trains its low level once per step and its high level
+    /// once per `c` steps (1.0). The learner grants them per episode, as for HAC: level 0
+    /// `updates_per_step x max_actions` updates per training episode, level 1 that over `c`.
+    pub updates_per_step: f32,
 }
 
 impl Default for HiroConfig {
@@ -84,6 +88,7 @@ impl Default for HiroConfig {
             policy_noise: 0.2,
             noise_clip: 0.5,
             policy_delay: 2,
+            updates_per_step: 1.0,
         }
     }
 }
@@ -103,6 +108,17 @@ impl HiroConfig {
         agent.action_noise = Noise::Relative(0.1);
         agent.subgoal_noise = Noise::Relative(0.1);
         agent.random_action_prob = 0.0;
+    }
+
+    /// Updates per training episode of `level` in episodes of at most `max_actions` primitive
+    /// actions ([`updates_per_step`](Self::updates_per_step)).
+    pub fn updates_per_episode(&self, level: usize, max_actions: usize) -> f64 {
+        let steps = if level == 0 {
+            max_actions as f64
+        } else {
+            max_actions as f64 / self.c as f64
+        };
+        f64::from(self.updates_per_step) * steps
     }
 
     /// Checks every field and the run's level count (HIRO has exactly two levels), naming the
@@ -142,6 +158,12 @@ impl HiroConfig {
                     format!("{v} (must be a finite fraction >= 0)"),
                 ));
             }
+        }
+        if !(self.updates_per_step.is_finite() && self.updates_per_step > 0.0) {
+            return Err(ConfigError::invalid(
+                "hiro.updates_per_step",
+                format!("{} (must be a finite number above 0)", self.updates_per_step),
+            ));
         }
         if self.policy_delay == 0 {
             return Err(ConfigError::invalid(

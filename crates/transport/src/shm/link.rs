@@ -181,7 +181,8 @@ impl Attached {
         let floats = admission
             .levels
             .iter()
-            .map(|d| 2 * d.state + d.action + d.goal + 2)
+            .enumerate()
+            .map(|(level, d)| 2 * d.state + d.action + d.goal + 2 + admission.extra_width(level))
             .max()
             .unwrap_or(0);
         let max_count = options
