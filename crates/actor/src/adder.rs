@@ -96,7 +96,11 @@ impl TransitionSink for Adder {
         batch.next_states.extend_from_slice(t.next_state);
         batch.goals.extend_from_slice(t.goal);
         batch.terminals.push(if t.terminal { 1.0 } else { 0.0 });
-        debug_assert_eq!(t.extra.len(), batch.extra_width, "extra values of another width");
+        debug_assert_eq!(
+            t.extra.len(),
+            batch.extra_width,
+            "extra values of another width"
+        );
         batch.extra.extend_from_slice(t.extra);
         batch.len += 1;
         if batch.len == self.max_len {

@@ -172,4 +172,3 @@ fn hiro_trains_through_the_learner_and_a_seed_gives_the_same_run() {
         assert_eq!(level.diverged_updates, 0);
     }
 }
-

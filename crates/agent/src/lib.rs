@@ -14,11 +14,11 @@ mod run_config;
 
 use std::path::Path;
 
+use hac_core::hiro::HiroConfig;
 use hac_core::{
-    AgentConfig, ConfigError, Env, EnvSpec, Episodes, EpisodeOutcome, Exploration,
+    AgentConfig, ConfigError, Env, EnvSpec, EpisodeOutcome, Episodes, Exploration,
     GaussianExploration, Mode, NullSink, Policy, Rng,
 };
-use hac_core::hiro::HiroConfig;
 use hac_nn::{LevelModel, NnError};
 use serde::{Deserialize, Serialize};
 

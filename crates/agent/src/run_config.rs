@@ -208,6 +208,16 @@ impl RunConfig {
         }
     }
 
+    /// The run's default directory name: `<env>-<k>l-seed<s>`, with `hiro-` before the level
+    /// count for a HIRO run (`pendulum-hiro-2l-seed0`).
+    pub fn run_name(&self) -> String {
+        let algo = match self.algo {
+            Algo::Hac => String::new(),
+            other => format!("{other}-"),
+        };
+        format!("{}-{algo}{}l-seed{}", self.env, self.levels, self.seed)
+    }
+
     /// HIRO's settings if the run trains HIRO.
     pub fn hiro(&self) -> Option<&HiroConfig> {
         self.hiro.as_ref()

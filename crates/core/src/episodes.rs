@@ -6,6 +6,8 @@ use crate::rollout::{EpisodeOutcome, Exploration, Hierarchy, Policy};
 use crate::{AgentConfig, Env, EnvSpec, Mode, Rng, TransitionSink};
 
 /// Runs episodes of the run's algorithm; owns every buffer an episode needs.
+// One per actor, made once and never moved while it runs: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Episodes {
     /// HAC (Levy et al., 2019): Algorithm 1 through every level.

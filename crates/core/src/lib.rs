@@ -28,8 +28,8 @@ pub mod transition;
 
 pub use bounds::{Bounds, within, within_goal};
 pub use config::{AgentConfig, ConfigError, Noise};
-pub use episodes::Episodes;
 pub use env::{Env, EnvSpec, LevelDims, Mode, StateError, horizon_covering};
+pub use episodes::Episodes;
 pub use limits::{LimitError, TransitionLimits};
 pub use rng::Rng;
 pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};

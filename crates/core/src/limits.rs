@@ -179,10 +179,11 @@ impl TransitionLimits {
             spec.subgoal_bounds.hull(&spec.achieved_subgoal_bounds)
         };
         let dims = 0..spec.subgoal_dim();
-        let radius: Vec<f32> = dims.clone().map(|d| spec.subgoal_bounds.half_range(d)).collect();
-        let width: Vec<f32> = dims
-            .map(|d| subgoals.high[d] - subgoals.low[d])
+        let radius: Vec<f32> = dims
+            .clone()
+            .map(|d| spec.subgoal_bounds.half_range(d))
             .collect();
+        let width: Vec<f32> = dims.map(|d| subgoals.high[d] - subgoals.low[d]).collect();
         let widen = |b: Bounds| {
             if b.is_empty() {
                 b

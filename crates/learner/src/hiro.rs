@@ -19,7 +19,7 @@ use hac_proto::{Published, WeightsSnapshot};
 /// The preparation of one HIRO level's minibatches.
 pub(crate) enum HiroPrep {
     Low(LowPrep),
-    High(HighPrep),
+    High(Box<HighPrep>),
 }
 
 pub(crate) struct LowPrep {
@@ -56,7 +56,7 @@ impl HiroPrep {
             })
         } else {
             let half_range = (0..g).map(|d| spec.subgoal_bounds.half_range(d)).collect();
-            Self::High(HighPrep {
+            Self::High(Box::new(HighPrep {
                 shape: StepsShape {
                     c,
                     state: spec.state_dim,
@@ -70,7 +70,7 @@ impl HiroPrep {
                 ),
                 low: None,
                 relabelled: 0,
-            })
+            }))
         }
     }
 
@@ -100,7 +100,8 @@ impl LowPrep {
             let state = &batch.states[j * sd..(j + 1) * sd];
             let next_state = &batch.next_states[j * sd..(j + 1) * sd];
             self.env.project_subgoal(state, &mut self.achieved);
-            self.env.project_subgoal(next_state, &mut self.next_achieved);
+            self.env
+                .project_subgoal(next_state, &mut self.next_achieved);
             goal_transition(
                 &self.achieved,
                 &batch.goals[j * gd..(j + 1) * gd],
@@ -118,7 +119,11 @@ impl HighPrep {
         let Some(snapshot) = weights.latest() else {
             return;
         };
-        if self.low.as_ref().is_none_or(|(v, _)| *v != snapshot.version) {
+        if self
+            .low
+            .as_ref()
+            .is_none_or(|(v, _)| *v != snapshot.version)
+        {
             // The learner published these weights itself: they decode.
             let actor = ActorNet::from_safetensors(&snapshot.levels[0])
                 .expect("the learner's own level-0 weights decode");

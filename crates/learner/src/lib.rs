@@ -1545,7 +1545,10 @@ impl Shared {
             extra_widths: if self.limits.iter().all(|l| l.extra_width() == 0) {
                 Vec::new()
             } else {
-                self.limits.iter().map(TransitionLimits::extra_width).collect()
+                self.limits
+                    .iter()
+                    .map(TransitionLimits::extra_width)
+                    .collect()
             },
         }
     }

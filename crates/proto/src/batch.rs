@@ -330,7 +330,11 @@ fn debug_assert_batch_consistent(batch: &Batch) {
     );
     debug_assert_eq!(batch.goals.len(), d.goal * n, "batch.goals length");
     debug_assert_eq!(batch.terminals.len(), n, "batch.terminals length");
-    debug_assert_eq!(batch.extra.len(), batch.extra_width * n, "batch.extra length");
+    debug_assert_eq!(
+        batch.extra.len(),
+        batch.extra_width * n,
+        "batch.extra length"
+    );
     debug_assert!(
         batch.terminals.iter().all(|&t| t == 0.0 || t == 1.0),
         "batch.terminals holds only 0.0 and 1.0"

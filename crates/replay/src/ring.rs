@@ -148,12 +148,7 @@ impl Ring {
         gather(&self.terminals, 1, rows, &mut batch.terminals[first..end]);
         let e = self.extra_width;
         if e > 0 {
-            gather(
-                &self.extra,
-                e,
-                rows,
-                &mut batch.extra[first * e..end * e],
-            );
+            gather(&self.extra, e, rows, &mut batch.extra[first * e..end * e]);
         }
     }
 }

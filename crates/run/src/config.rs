@@ -340,7 +340,10 @@ mod tests {
         );
         // The resolved config says what it trains, and reads back the same.
         let text = toml::to_string(&c).unwrap();
-        assert!(text.contains("algo = \"hiro\"") && text.contains("[hiro]"), "{text}");
+        assert!(
+            text.contains("algo = \"hiro\"") && text.contains("[hiro]"),
+            "{text}"
+        );
         assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), c);
 
         for (levels, env, set, named) in [

@@ -181,7 +181,10 @@ pub fn run(grid: Grid) -> Result<()> {
     for env in &grid.envs {
         let groups = group(env, &grid.algos, &grid.levels, &finished);
         let svg = plot::success_chart(
-            &format!("{env}: mean test success +- 1 std over {} seeds", grid.seeds),
+            &format!(
+                "{env}: mean test success +- 1 std over {} seeds",
+                grid.seeds
+            ),
             "training episodes",
             &groups
                 .iter()
@@ -208,14 +211,7 @@ pub fn run(grid: Grid) -> Result<()> {
 }
 
 fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
-    let algo = match config.algo {
-        Algo::Hac => String::new(),
-        other => format!("{other}-"),
-    };
-    out.join(format!(
-        "{}-{algo}{}l-seed{}",
-        config.env, config.levels, config.seed
-    ))
+    out.join(config.run_name())
 }
 
 fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Finished> {

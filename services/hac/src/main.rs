@@ -372,7 +372,7 @@ struct TrainArgs {
     /// `--set horizon=20 --set hidden_layers=[64,64]`. Also read from HAC_AGENT_<KEY>.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
-    /// Run directory [default: runs/<env>-<levels>l-seed<seed>].
+    /// Run directory [default: runs/<env>-<levels>l-seed<seed>; HIRO: runs/<env>-hiro-2l-seed<seed>].
     #[arg(long, env = "HAC_OUT")]
     out: Option<PathBuf>,
     /// Print the resolved configuration as TOML and exit.
@@ -576,9 +576,9 @@ fn train(args: TrainArgs) -> Result<()> {
         print!("{}", toml::to_string(&run)?);
         return Ok(());
     }
-    let out = args.out.unwrap_or_else(|| {
-        PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
-    });
+    let out = args
+        .out
+        .unwrap_or_else(|| PathBuf::from("runs").join(run.run_name()));
     let mut dir = run_dir::RunDir::create(&out, &run, args.overwrite)?;
     if tabular_cmd::handles(&run.env) {
         return tabular_cmd::train(&run, dir, &out);

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use hac_agent::{LevelReport, RoundReport};
-use hac_core::{Env, Episodes, EpisodeOutcome, Hierarchy, Rng};
+use hac_core::{Env, EpisodeOutcome, Episodes, Hierarchy, Rng};
 use hac_tabular::{FourRooms, TabularAgent, TabularHac};
 
 use crate::config::RunConfig;

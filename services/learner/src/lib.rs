@@ -88,7 +88,8 @@ pub struct LearnerArgs {
     #[arg(long, env = "HAC_LISTEN", default_value = "127.0.0.1:50051")]
     pub listen: SocketAddr,
     /// Run directory: config.toml, curve.csv (a row per evaluation), and at the end
-    /// weights/level<i>.safetensors and summary.json [default: runs/<env>-<levels>l-seed<seed>].
+    /// weights/level<i>.safetensors and summary.json [default: runs/<env>-<levels>l-seed<seed>;
+    /// HIRO: runs/<env>-hiro-2l-seed<seed>].
     #[arg(long, env = "HAC_OUT")]
     pub out: Option<PathBuf>,
     /// Replace a run already in the run directory.
@@ -281,9 +282,10 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     }
     let mut options = args.learner_options(&run)?;
     let server_options = args.server_options()?;
-    let out = args.out.clone().unwrap_or_else(|| {
-        PathBuf::from(format!("runs/{}-{}l-seed{}", run.env, run.levels, run.seed))
-    });
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("runs").join(run.run_name()));
     options.wal = args.checkpoint.wal(&out);
     // The log cut of the checkpoint resumed from: the log stays from there until newer
     // checkpoints replace it among those kept.

@@ -12,6 +12,8 @@
 //!   (equal to `transitions`, unless the run resumed from a checkpoint without its replay: then
 //!   they count from the resume); `duplicates`: resends of stored messages, acknowledged and
 //!   dropped;
+//! - `levels`: per level, level 0 first, its `updates` and the `transitions` stored in its
+//!   replay;
 //! - `weights_version`, and `rejected`: refused inputs by reason (only reasons that occurred);
 //! - `episode_turns`: `episodes_in_flight` (0: no turns), turns `granted` and `expired`.
 
@@ -60,6 +62,11 @@ pub fn finish(dir: &RunDir, run: &FinishedRun, wall_time_s: f64) -> Result<Summa
         "transitions": status.transitions,
         "transitions_in_replay": status.levels.iter().map(|l| l.transitions_inserted).sum::<u64>(),
         "duplicates": status.duplicates,
+        "levels": status
+            .levels
+            .iter()
+            .map(|l| json!({"updates": l.updates, "transitions": l.transitions_inserted}))
+            .collect::<Vec<_>>(),
         "weights_version": status.weights_version,
         "rejected": rejected,
         "episode_turns": {

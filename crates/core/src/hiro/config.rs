@@ -162,7 +162,10 @@ impl HiroConfig {
         if !(self.updates_per_step.is_finite() && self.updates_per_step > 0.0) {
             return Err(ConfigError::invalid(
                 "hiro.updates_per_step",
-                format!("{} (must be a finite number above 0)", self.updates_per_step),
+                format!(
+                    "{} (must be a finite number above 0)",
+                    self.updates_per_step
+                ),
             ));
         }
         if self.policy_delay == 0 {

@@ -319,7 +319,9 @@ mod tests {
         steps.pack(shape, &mut packed);
         assert_eq!(
             packed,
-            [2.0, 1.0, 2.0, 3.0, 4.0, 0.0, 0.0, 0.5, 0.6, 0.7, 0.0, -1.0, 1.0, 0.0]
+            [
+                2.0, 1.0, 2.0, 3.0, 4.0, 0.0, 0.0, 0.5, 0.6, 0.7, 0.0, -1.0, 1.0, 0.0
+            ]
         );
         let back = LowLevelSteps::unpack(&packed, shape).expect("valid");
         assert_eq!(

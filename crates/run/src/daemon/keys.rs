@@ -5,6 +5,7 @@
 
 /// `[learner]`.
 pub const LEARNER: &[&str] = &[
+    "algo",
     "listen",
     "out",
     "overwrite",

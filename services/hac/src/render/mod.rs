@@ -57,6 +57,13 @@ pub fn run(args: &RenderArgs) -> Result<()> {
     if args.episode_steps == Some(0) {
         bail!("invalid value for `--episode-steps`: must be at least 1");
     }
+    if run.hiro().is_some() {
+        bail!(
+            "{} is a HIRO run: `hac render` draws HAC's absolute subgoals, and HIRO's are relative \
+             goals it does not draw yet (`hac eval --per-episode` plays its greedy episodes)",
+            args.run.display()
+        );
+    }
     let (mut env, mut policy) = load_policy(&args.run, &run, args.seed)?;
     let mut spec = env.spec().clone();
     if let Some(max) = args.episode_steps {
@@ -124,7 +131,7 @@ fn load_policy(
         return Ok((Box::new(env), Box::new(agent)));
     }
     let env = run.make_env()?;
-    let agent = Agent::load(&run_dir::weights_dir(run_dir), env.spec(), &run)
+    let agent = Agent::load(&run_dir::weights_dir(run_dir), env.spec(), run)
         .context("loading the run's weights")?;
     Ok((env, Box::new(agent)))
 }
