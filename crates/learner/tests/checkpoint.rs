@@ -2,7 +2,6 @@
 //! taken (networks, optimiser, random streams, replay, counters, curve, versions), and
 //! checkpoints that do not fit the run are refused by name.
 
-use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use hac_agent::RunConfig;
@@ -11,6 +10,8 @@ use hac_learner::{CheckpointError, Learner, LearnerCheckpoint, LearnerOptions, S
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
 mod common;
+
+use common::{drained, files};
 
 fn run(episodes: u64, shards: usize) -> RunConfig {
     common::small_run(episodes, shards)
@@ -97,31 +98,6 @@ impl Feeder {
             },
         );
     }
-}
-
-/// Waits until every level has done every update owed so far.
-fn drained(learner: &Learner) {
-    let started = Instant::now();
-    loop {
-        let status = learner.status();
-        if status
-            .levels
-            .iter()
-            .all(|l| l.limiter.deficit < 1.0 && l.limiter.updates == l.updates)
-        {
-            return;
-        }
-        assert!(
-            started.elapsed() < Duration::from_secs(60),
-            "trainers never caught up: {:?}",
-            status.levels
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
-fn files(checkpoint: &LearnerCheckpoint) -> BTreeMap<String, Vec<u8>> {
-    checkpoint.to_files().into_iter().collect()
 }
 
 fn evaluate(learner: &Learner, feeder: &Feeder, successes: u32) {

@@ -2,9 +2,6 @@
 //! their low-level steps, refused without them), both TD3 levels train, and a checkpoint resumes
 //! exactly where it was taken.
 
-use std::collections::BTreeMap;
-use std::time::{Duration, Instant};
-
 use hac_agent::RunConfig;
 use hac_core::hiro::{Algo, HiroConfig};
 use hac_core::{Batch, Env, Episodes, GaussianExploration, Mode, OwnedTransition, Policy, Rng};
@@ -12,6 +9,8 @@ use hac_learner::{IngestError, Learner, LearnerCheckpoint, LearnerOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
 mod common;
+
+use common::{drained, files};
 
 /// A small HIRO pendulum run: 50-action episodes, batches of 4, one hidden layer of 8; 5
 /// low-level and 0.5 high-level updates per episode.
@@ -87,8 +86,9 @@ impl Feeder {
             .map(|_| ())
     }
 
-    /// One training episode: its transitions, one batch per level, then its end.
-    fn episode(&mut self, learner: &Learner) {
+    /// Plays one training episode; returns its transitions and how many primitive actions it
+    /// took and whether it succeeded.
+    fn play(&mut self) -> (Vec<OwnedTransition>, u64, bool) {
         let mut got: Vec<OwnedTransition> = Vec::new();
         let outcome = self.episodes.run_episode(
             self.env.as_mut(),
@@ -98,6 +98,12 @@ impl Feeder {
             &mut self.rng,
             &mut got,
         );
+        (got, outcome.steps as u64, outcome.success)
+    }
+
+    /// One training episode: its transitions, one batch per level, then its end.
+    fn episode(&mut self, learner: &Learner) {
+        let (got, steps, success) = self.play();
         for level in 0..2 {
             let batch = batch_of(learner, level, got.iter().filter(|t| t.level == level));
             self.send(
@@ -113,8 +119,8 @@ impl Feeder {
         self.send(
             learner,
             IngestItem::Episode {
-                env_steps: outcome.steps as u64,
-                success: outcome.success,
+                env_steps: steps,
+                success,
                 weights_version: 1,
             },
         )
@@ -142,26 +148,6 @@ fn batch_of<'a>(
     batch
 }
 
-fn drained(learner: &Learner) {
-    let started = Instant::now();
-    while !learner
-        .status()
-        .levels
-        .iter()
-        .all(|l| l.limiter.deficit < 1.0 && l.limiter.updates == l.updates)
-    {
-        assert!(
-            started.elapsed() < Duration::from_secs(60),
-            "trainers never caught up"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
-fn files(checkpoint: &LearnerCheckpoint) -> BTreeMap<String, Vec<u8>> {
-    checkpoint.to_files().into_iter().collect()
-}
-
 #[test]
 fn hiro_batches_are_admitted_by_hiros_limits_and_both_levels_train() {
     let run = hiro_run();
@@ -180,15 +166,7 @@ fn hiro_batches_are_admitted_by_hiros_limits_and_both_levels_train() {
     assert_eq!(status.levels[1].updates, 2);
 
     // The high level's transitions without their steps: refused by name, nothing stored.
-    let mut got: Vec<OwnedTransition> = Vec::new();
-    feeder.episodes.run_episode(
-        feeder.env.as_mut(),
-        &mut Still,
-        &mut feeder.exploration,
-        Mode::Train,
-        &mut feeder.rng,
-        &mut got,
-    );
+    let (got, _, _) = feeder.play();
     let mut stripped = batch_of(&learner, 1, got.iter().filter(|t| t.level == 1));
     stripped.extra.clear();
     stripped.extra_width = 0;

@@ -792,21 +792,7 @@ mod tests {
         );
 
         // Another kind of file is refused by its format tag.
-        let level = crate::LevelLearner::new(
-            crate::LearnerConfig {
-                dims: DIMS,
-                action_bounds: Bounds::symmetric(&[2.0]),
-                horizon: 10.0,
-                gamma: 0.99,
-                hidden: vec![16, 16],
-                actor_lr: 1e-3,
-                critic_lr: 1e-3,
-                target_tau: Some(0.005),
-                actor_preactivation_l2: 0.0,
-                exact_critic_slope: false,
-            },
-            &mut rng,
-        );
+        let level = hac_level(Some(0.005), &mut rng);
         assert!(matches!(
             Td3Learner::from_safetensors(config(), &level.to_safetensors()),
             Err(NnError::Metadata { .. })
@@ -878,11 +864,9 @@ mod tests {
         assert_eq!(guarded.to_safetensors(), plain.to_safetensors());
     }
 
-    #[test]
-    #[should_panic(expected = "backup of another shape")]
-    fn a_level_learners_backup_is_refused() {
-        let mut rng = Rng::seed_from(8);
-        let level = crate::LevelLearner::new(
+    /// A HAC level learner of this module's dimensions and widths.
+    fn hac_level(target_tau: Option<f32>, rng: &mut Rng) -> crate::LevelLearner {
+        crate::LevelLearner::new(
             crate::LearnerConfig {
                 dims: DIMS,
                 action_bounds: Bounds::symmetric(&[2.0]),
@@ -891,12 +875,19 @@ mod tests {
                 hidden: vec![16, 16],
                 actor_lr: 1e-3,
                 critic_lr: 1e-3,
-                target_tau: None,
+                target_tau,
                 actor_preactivation_l2: 0.0,
                 exact_critic_slope: false,
             },
-            &mut rng,
-        );
+            rng,
+        )
+    }
+
+    #[test]
+    #[should_panic(expected = "backup of another shape")]
+    fn a_level_learners_backup_is_refused() {
+        let mut rng = Rng::seed_from(8);
+        let level = hac_level(None, &mut rng);
         let mut backup = LearnerBackup::default();
         level.save(&mut backup);
         Td3Learner::new(config(), &mut rng).restore(&backup);

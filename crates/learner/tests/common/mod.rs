@@ -1,6 +1,10 @@
 //! What the learner's tests share: a small pendulum run that trains in milliseconds.
 
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
 use hac_agent::RunConfig;
+use hac_learner::{Learner, LearnerCheckpoint};
 
 /// Pendulum, 2 levels, seed 1, batches of 4, 3 updates per episode, one hidden layer of 8.
 pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
@@ -22,4 +26,32 @@ pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
         hiro: None,
         algo: Default::default(),
     }
+}
+
+/// Waits until every level has done every update owed so far.
+#[allow(dead_code)] // not every test file waits
+pub fn drained(learner: &Learner) {
+    let started = Instant::now();
+    loop {
+        let status = learner.status();
+        if status
+            .levels
+            .iter()
+            .all(|l| l.limiter.deficit < 1.0 && l.limiter.updates == l.updates)
+        {
+            return;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "trainers never caught up: {:?}",
+            status.levels
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// A checkpoint's files by name, as on disk.
+#[allow(dead_code)] // not every test file takes checkpoints
+pub fn files(checkpoint: &LearnerCheckpoint) -> BTreeMap<String, Vec<u8>> {
+    checkpoint.to_files().into_iter().collect()
 }
