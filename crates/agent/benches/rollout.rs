@@ -46,7 +46,7 @@ fn bench_env(group: &mut BenchmarkGroup<'_, WallTime>, env_name: &str, levels: u
     // A small replay keeps memory flat; rings overwrite, so inserts cost the same throughout.
     let mut small = config.clone();
     small.replay_capacity_max = 100_000;
-    let replay = Replay::for_agent(&spec, &small, 1);
+    let replay = Replay::for_agent(&spec, &small, 1, &[]);
     for mode in [Mode::Train, Mode::Test] {
         let name = format!("{env_name}_{levels}_levels_{mode:?}").to_lowercase();
         group.bench_function(name, |b| {

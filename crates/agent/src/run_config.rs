@@ -196,15 +196,7 @@ impl RunConfig {
     pub fn extra_widths(&self, spec: &hac_core::EnvSpec) -> Vec<usize> {
         match &self.hiro {
             None => vec![0; self.levels],
-            Some(h) => {
-                let shape = hac_core::hiro::StepsShape {
-                    c: h.c,
-                    state: spec.state_dim,
-                    goal: spec.subgoal_dim(),
-                    action: spec.action_dim(),
-                };
-                vec![0, shape.width()]
-            }
+            Some(h) => vec![0, hac_core::hiro::StepsShape::of(spec, h.c).width()],
         }
     }
 

@@ -24,7 +24,7 @@
 //! an honest actor whose physics differs in the last bits is never refused. A box the
 //! environment leaves empty (unknown) is not checked.
 
-use crate::hiro::{LowLevelSteps, StepsError, StepsShape};
+use crate::hiro::{LowLevelSteps, StepsError, StepsShape, goal_radius};
 use crate::{BatchRef, Bounds, EnvSpec};
 
 /// How far outside a box a value may lie, as a fraction of the box's width on each side.
@@ -120,6 +120,26 @@ pub enum LimitError {
     },
 }
 
+/// Where subgoals come from: the proposing level's output range (`subgoal_bounds`) joined with
+/// the achieved ones hindsight relabels with (`achieved_subgoal_bounds`).
+fn subgoal_space(spec: &EnvSpec) -> Bounds {
+    if spec.achieved_subgoal_bounds.is_empty() {
+        spec.subgoal_bounds.clone()
+    } else {
+        spec.subgoal_bounds.hull(&spec.achieved_subgoal_bounds)
+    }
+}
+
+/// `b` widened by [`MARGIN`] (and the rounding hair) on each side; an empty (unknown) box stays
+/// empty.
+fn widen(b: Bounds) -> Bounds {
+    if b.is_empty() {
+        b
+    } else {
+        b.widened(MARGIN, ROUNDING)
+    }
+}
+
 fn field_meaning(field: &str) -> &'static str {
     match field {
         "states" | "next_states" | "extra.states" => "state",
@@ -132,11 +152,7 @@ fn field_meaning(field: &str) -> &'static str {
 impl TransitionLimits {
     /// The limits of level `level` of `levels` under `spec`, whose penalty is `-horizon`.
     pub fn for_level(spec: &EnvSpec, level: usize, levels: usize, horizon: f32) -> Self {
-        let subgoals = if spec.achieved_subgoal_bounds.is_empty() {
-            spec.subgoal_bounds.clone()
-        } else {
-            spec.subgoal_bounds.hull(&spec.achieved_subgoal_bounds)
-        };
+        let subgoals = subgoal_space(spec);
         let goal = if level + 1 == levels {
             spec.end_goal_bounds.clone()
         } else {
@@ -146,13 +162,6 @@ impl TransitionLimits {
             spec.action_bounds.clone()
         } else {
             subgoals
-        };
-        let widen = |b: Bounds| {
-            if b.is_empty() {
-                b
-            } else {
-                b.widened(MARGIN, ROUNDING)
-            }
         };
         Self {
             state: widen(spec.state_bounds.clone()),
@@ -173,24 +182,11 @@ impl TransitionLimits {
     ///   subgoal space's width within a decision) in `[-(r + w), r + w]`, `w` the width,
     ///   rewards from minus the largest distance such goals allow (`||r + 2w||`) to 0.
     pub fn for_hiro_level(spec: &EnvSpec, level: usize, c: usize) -> Self {
-        let subgoals = if spec.achieved_subgoal_bounds.is_empty() {
-            spec.subgoal_bounds.clone()
-        } else {
-            spec.subgoal_bounds.hull(&spec.achieved_subgoal_bounds)
-        };
-        let dims = 0..spec.subgoal_dim();
-        let radius: Vec<f32> = dims
-            .clone()
-            .map(|d| spec.subgoal_bounds.half_range(d))
+        let subgoals = subgoal_space(spec);
+        let radius = goal_radius(spec);
+        let width: Vec<f32> = (0..spec.subgoal_dim())
+            .map(|d| subgoals.high[d] - subgoals.low[d])
             .collect();
-        let width: Vec<f32> = dims.map(|d| subgoals.high[d] - subgoals.low[d]).collect();
-        let widen = |b: Bounds| {
-            if b.is_empty() {
-                b
-            } else {
-                b.widened(MARGIN, ROUNDING)
-            }
-        };
         let state = widen(spec.state_bounds.clone());
         if level == 0 {
             let drift: Vec<f32> = radius.iter().zip(&width).map(|(r, w)| r + w).collect();
@@ -216,12 +212,7 @@ impl TransitionLimits {
                 action: widen(Bounds::symmetric(&radius)),
                 rewards: Rewards::Whole { max: c as f32 },
                 extra: Extra::Steps {
-                    shape: StepsShape {
-                        c,
-                        state: spec.state_dim,
-                        goal: spec.subgoal_dim(),
-                        action: spec.action_dim(),
-                    },
+                    shape: StepsShape::of(spec, c),
                     state,
                     achieved: widen(subgoals),
                     action: widen(spec.action_bounds.clone()),

@@ -11,7 +11,7 @@
 //!   that is the policy of the episode just played, whatever the other trainer's progress, so
 //!   a seed gives the same run.
 
-use hac_core::hiro::{LowLevelSteps, StepsShape, goal_transition};
+use hac_core::hiro::{LowLevelSteps, StepsShape, goal_radius, goal_transition};
 use hac_core::{Batch, Env, EnvSpec, Rng};
 use hac_nn::{ActorNet, BatchedCorrection};
 use hac_proto::{Published, WeightsSnapshot};
@@ -36,8 +36,6 @@ pub(crate) struct HighPrep {
     correction: BatchedCorrection,
     /// The low level's actor and the weights version it is from.
     low: Option<(u64, ActorNet)>,
-    /// Goals the correction changed, over all updates.
-    pub(crate) relabelled: u64,
 }
 
 impl HiroPrep {
@@ -55,21 +53,14 @@ impl HiroPrep {
                 next_goals: Vec::new(),
             })
         } else {
-            let half_range = (0..g).map(|d| spec.subgoal_bounds.half_range(d)).collect();
             Self::High(Box::new(HighPrep {
-                shape: StepsShape {
-                    c,
-                    state: spec.state_dim,
-                    goal: g,
-                    action: spec.action_dim(),
-                },
+                shape: StepsShape::of(&spec, c),
                 correction: BatchedCorrection::new(
                     candidates,
-                    half_range,
+                    goal_radius(&spec),
                     spec.subgoal_angles.clone(),
                 ),
                 low: None,
-                relabelled: 0,
             }))
         }
     }
@@ -135,9 +126,7 @@ impl HighPrep {
         let steps = batch.extra.chunks_exact(width).map(|packed| {
             LowLevelSteps::unpack(packed, shape).expect("stored steps were checked at ingest")
         });
-        let changed = self
-            .correction
+        self.correction
             .relabel(actor, &mut batch.actions, steps, rng);
-        self.relabelled += changed as u64;
     }
 }

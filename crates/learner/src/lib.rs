@@ -56,8 +56,7 @@ use hac_proto::{
     Registration, WeightsSnapshot, WireError, check_batch,
 };
 use hac_replay::{
-    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, ReplayTable,
-    WaitError,
+    RateLimiter, RateLimiterConfig, RateLimiterConfigError, RateLimiterStatus, Replay, WaitError,
 };
 use parking_lot::{Condvar, Mutex, RwLock};
 use sha2::{Digest, Sha256};
@@ -712,19 +711,8 @@ impl Learner {
                 Some(hiro) => TransitionLimits::for_hiro_level(&spec, level, hiro.c),
             })
             .collect();
-        // HAC's tables as always; a HIRO run's high level keeps its low-level steps beside.
-        let replay = Replay::new(
-            (0..config.levels)
-                .map(|level| {
-                    ReplayTable::with_extra(
-                        dims[level],
-                        limits[level].extra_width(),
-                        config.replay_capacity(level),
-                        run.replay_shards,
-                    )
-                })
-                .collect(),
-        );
+        // A HIRO run's high level keeps its low-level steps beside its transitions.
+        let replay = Replay::for_agent(&spec, config, run.replay_shards, &run.extra_widths(&spec));
         let limiters = (0..config.levels)
             .map(|level| {
                 let mut limiter_config = RateLimiterConfig::for_agent(config);
@@ -888,7 +876,7 @@ impl Learner {
                 let shared = shared.clone();
                 let batch = Batch::zeros_with_extra(
                     shared.dims[level],
-                    shared.limits[level].extra_width(),
+                    shared.replay.table(level).extra_width(),
                     batch_size,
                 );
                 std::thread::Builder::new()
@@ -1542,13 +1530,13 @@ impl Shared {
             max_weights_lag: self.options.max_weights_lag,
             shm: None,
             episodes_in_flight: self.options.episodes_in_flight,
-            extra_widths: if self.limits.iter().all(|l| l.extra_width() == 0) {
-                Vec::new()
-            } else {
-                self.limits
-                    .iter()
-                    .map(TransitionLimits::extra_width)
+            // None for HAC, whose admissions stay as they were.
+            extra_widths: if self.run.hiro().is_some() {
+                (0..self.dims.len())
+                    .map(|level| self.replay.table(level).extra_width())
                     .collect()
+            } else {
+                Vec::new()
             },
         }
     }

@@ -1,6 +1,6 @@
 //! [`LevelModel`]: one level's networks and the way they learn, HAC's or HIRO's.
 
-use hac_core::hiro::HiroConfig;
+use hac_core::hiro::{HiroConfig, goal_radius};
 use hac_core::{AgentConfig, Bounds, EnvSpec, Rng};
 
 use crate::{ActorNet, LearnerConfig, LevelLearner, NnError, Td3Config, Td3Learner};
@@ -20,10 +20,7 @@ impl Td3Config {
         let action_bounds = if level == 0 {
             spec.action_bounds.clone()
         } else {
-            let radius: Vec<f32> = (0..spec.subgoal_dim())
-                .map(|d| spec.subgoal_bounds.half_range(d))
-                .collect();
-            Bounds::symmetric(&radius)
+            Bounds::symmetric(&goal_radius(spec))
         };
         Self {
             dims: spec.level_dims(level, 2),

@@ -37,15 +37,23 @@ impl Replay {
     }
 
     /// The reference sizing: each level gets its dimensions from `spec` and its capacity from
-    /// [`AgentConfig::replay_capacity`], split over `shards` shards.
+    /// [`AgentConfig::replay_capacity`], split over `shards` shards; level `i` keeps
+    /// `extra_widths[i]` extra values per transition beside (none where the slice ends: HAC's
+    /// levels).
     ///
     /// # Panics
     /// If `shards` is zero or exceeds a level's capacity.
-    pub fn for_agent(spec: &EnvSpec, config: &AgentConfig, shards: usize) -> Self {
+    pub fn for_agent(
+        spec: &EnvSpec,
+        config: &AgentConfig,
+        shards: usize,
+        extra_widths: &[usize],
+    ) -> Self {
         let tables = (0..config.levels)
             .map(|level| {
-                ReplayTable::new(
+                ReplayTable::with_extra(
                     spec.level_dims(level, config.levels),
+                    extra_widths.get(level).copied().unwrap_or(0),
                     config.replay_capacity(level),
                     shards,
                 )

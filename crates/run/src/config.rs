@@ -103,12 +103,6 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
     }
 
     let algo = flags.algo.or(file_config.algo).unwrap_or_default();
-    if algo == Algo::Hiro && levels != 2 {
-        bail!(
-            "invalid value for `levels`: {levels}: HIRO has exactly 2 levels (`--algo hiro` \
-             needs `--levels 2`)"
-        );
-    }
 
     // Agent: environment defaults (with HIRO's own where it differs), then the file's [agent]
     // table, then HAC_AGENT_* variables, then --set flags; deserialising the merged table

@@ -17,14 +17,22 @@
 //! as in HAC's goal test ([`crate::within_goal`]): every difference of two angles is wrapped to
 //! `[-pi, pi]`, so an offset names the shorter turn.
 
-use crate::Rng;
 use crate::bounds::angle_difference;
+use crate::{EnvSpec, Rng};
 
 mod config;
 mod rollout;
 
 pub use config::{Algo, HiroConfig};
 pub use rollout::{HighTransition, HiroRollout, HiroSink};
+
+/// `r`: the half ranges of `spec`'s subgoal bounds, per dimension. HIRO's relative goals lie in
+/// `[-r, r]`.
+pub fn goal_radius(spec: &EnvSpec) -> Vec<f32> {
+    (0..spec.subgoal_dim())
+        .map(|d| spec.subgoal_bounds.half_range(d))
+        .collect()
+}
 
 /// `to - from` per dimension, wrapped to `[-pi, pi]` on the dimensions flagged in `angles`.
 pub fn displacement(from: &[f32], to: &[f32], angles: &[bool], out: &mut [f32]) {
@@ -119,6 +127,17 @@ pub struct StepsShape {
 }
 
 impl StepsShape {
+    /// The steps of HIRO's high level on `spec` deciding every `c` primitive steps: full states,
+    /// subgoal projections, primitive actions.
+    pub fn of(spec: &EnvSpec, c: usize) -> Self {
+        Self {
+            c,
+            state: spec.state_dim,
+            goal: spec.subgoal_dim(),
+            action: spec.action_dim(),
+        }
+    }
+
     /// Floats per packed transition: the step count, then `c` states, `c + 1` projections and
     /// `c` actions, each block zero-padded to its full length.
     pub fn width(&self) -> usize {

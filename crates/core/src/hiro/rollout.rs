@@ -19,7 +19,7 @@
 //!
 //! No hindsight at either level: that is the difference the HAC paper's comparison measures.
 
-use crate::hiro::{LowLevelSteps, StepsShape, goal_transition, intrinsic_reward};
+use crate::hiro::{LowLevelSteps, StepsShape, goal_radius, goal_transition, intrinsic_reward};
 use crate::rollout::{EpisodeOutcome, Exploration, Policy};
 use crate::{
     Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, TransitionSink, within_goal,
@@ -86,7 +86,7 @@ impl HiroRollout {
     pub fn new(spec: &EnvSpec, c: usize) -> Self {
         assert!(c >= 1, "HIRO's high level needs c >= 1");
         let g = spec.subgoal_dim();
-        let radius: Vec<f32> = (0..g).map(|d| spec.subgoal_bounds.half_range(d)).collect();
+        let radius = goal_radius(spec);
         Self {
             spec: spec.clone(),
             c,
@@ -100,22 +100,13 @@ impl HiroRollout {
             end_projection: vec![0.0; spec.end_goal_dim],
             action: vec![0.0; spec.action_dim()],
             segment: Segment::default(),
-            packed: vec![0.0; Self::shape_of(spec, c).width()],
-        }
-    }
-
-    fn shape_of(spec: &EnvSpec, c: usize) -> StepsShape {
-        StepsShape {
-            c,
-            state: spec.state_dim,
-            goal: spec.subgoal_dim(),
-            action: spec.action_dim(),
+            packed: vec![0.0; StepsShape::of(spec, c).width()],
         }
     }
 
     /// The shape of the high level's packed steps ([`Transition::extra`] of its transitions).
     pub fn steps_shape(&self) -> StepsShape {
-        Self::shape_of(&self.spec, self.c)
+        StepsShape::of(&self.spec, self.c)
     }
 
     /// [`run_episode`](Self::run_episode) into a [`TransitionSink`], as HAC's rollout feeds
