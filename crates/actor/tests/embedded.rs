@@ -138,6 +138,10 @@ fn hiro_trains_through_the_learner_and_a_seed_gives_the_same_run() {
     let mut config = run_config("pendulum", 3, 6, 2);
     HiroConfig::agent_defaults(&mut config.agent);
     config.agent.exploration_episodes = 3;
+    // HIRO's schedule does not read it, but the learner publishes every this many updates:
+    // weights published in the middle of a round, at moments timing decides, must not reach
+    // the high level's correction.
+    config.agent.updates_per_episode = 1;
     config.algo = Algo::Hiro;
     // A twentieth of HIRO's update rate keeps the debug build quick: 50 low-level and 5
     // high-level updates per 1000-step episode.

@@ -7,9 +7,9 @@
 //!   own.
 //! - Level 1's stored goals (its actions) are corrected when sampled: each becomes the candidate
 //!   under which the current low-level policy most likely took the stored low-level actions.
-//!   "Current" is the level-0 actor of the latest *published* weights: with one lockstep actor
-//!   that is the policy of the episode just played, whatever the other trainer's progress, so
-//!   a seed gives the same run.
+//!   "Current" is the level-0 actor of the latest snapshot that covered more episodes than the
+//!   one before (not of weights published in between, at moments timing decides): with one
+//!   lockstep actor, the policy of the episode just played, so a seed gives the same run.
 
 use hac_core::hiro::{LowLevelSteps, StepsShape, goal_radius, goal_transition};
 use hac_core::{Batch, Env, EnvSpec, Rng};

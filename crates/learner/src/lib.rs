@@ -539,6 +539,11 @@ struct Shared {
     turns: Mutex<TurnState>,
     turn_changed: Condvar,
     weights: Published<WeightsSnapshot>,
+    /// The first snapshot, then each that covered more episodes than the one before: weights
+    /// fixed by the schedule rather than by when a trainer offered them (with one lockstep
+    /// actor, the weights of the episode just played). HIRO's off-policy correction reads its
+    /// low-level policy here, so that a seed gives the same run.
+    covering: Published<WeightsSnapshot>,
     /// Why the learner is unhealthy (a level failing, see [`MAX_DIVERGED_IN_A_ROW`]), or
     /// `None`; republished whenever that changes.
     trouble: Published<Option<String>>,
@@ -794,6 +799,7 @@ impl Learner {
             turn_changed: Condvar::new(),
             slots,
             weights: Published::default(),
+            covering: Published::default(),
             trouble: Published::default(),
             best: Published::default(),
             curve: Mutex::new(CurveState {
@@ -1833,7 +1839,7 @@ impl Shared {
             let outcome = match (&mut learner, &mut hiro) {
                 (LevelModel::Hac(l), _) => l.update_or_undo(&batch, &mut backup),
                 (LevelModel::Td3(l), Some(prep)) => {
-                    let next_goals = prep.prepare(&mut batch, &self.weights, &mut rng);
+                    let next_goals = prep.prepare(&mut batch, &self.covering, &mut rng);
                     l.update_or_undo(&batch, next_goals, &mut rng, &mut backup)
                 }
                 (LevelModel::Td3(_), None) => unreachable!("TD3 levels are HIRO's"),
@@ -1962,6 +1968,8 @@ impl Shared {
             publisher.published_updates[level] = slot.weights_updates;
             covered = covered.min(slot.covered_episodes);
         }
+        let covers_more =
+            covered > publisher.published_episodes || self.covering.latest().is_none();
         publisher.version += 1;
         publisher.published_episodes = covered;
         publisher.last_publish = Instant::now();
@@ -1979,6 +1987,9 @@ impl Shared {
             learner_start: self.learner_start,
         });
         publisher.recent.push(snapshot.clone());
+        if covers_more {
+            self.covering.publish(snapshot.clone());
+        }
         self.weights.publish(snapshot);
         self.published_episodes.store(covered, Ordering::Release);
         // Under the turns' lock, so that a waiter between its check and its wait still wakes.
