@@ -1,7 +1,7 @@
 //! Checkpoints of the learner's whole state, and resuming from them.
 //!
 //! [`Learner::checkpoint`] takes a consistent cut of a running learner: it pauses ingest and
-//! evaluation reports (the exclusive side of `Shared::gate`), asks every trainer for a snapshot
+//! evaluation reports (the exclusive side of the learner's `gate`), asks every trainer for a snapshot
 //! of its level between two updates (weights, optimiser state, update count, random stream and
 //! rate-limiter counts agree), reads counters, curve and weights version, and optionally copies
 //! the replay tables; then ingest resumes. [`FinishedRun::checkpoint`] does the same for a learner
@@ -30,8 +30,7 @@
 //! acknowledged after the checkpoint are lost with the process that acknowledged them.
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use hac_agent::{Agent, RoundReport, RunConfig};
@@ -39,13 +38,12 @@ use hac_core::{EnvSpec, Rng};
 use hac_nn::{LevelModel, UpdateStats};
 use hac_proto::{ActorRole, WeightsSnapshot};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
-use parking_lot::Mutex;
+use parking_lot::{Condvar, Mutex};
 use serde::{Deserialize, Serialize};
 
-use crate::{
-    ActorEntry, BestWeights, Counters, FinishedRun, Learner, LearnerOptions, RejectReason, Shared,
-    StartError,
-};
+use crate::ingest::Counters;
+use crate::registry::{ActorEntry, Registry};
+use crate::{BestWeights, FinishedRun, Learner, LearnerOptions, RejectReason, Shared, StartError};
 
 /// Name of the state file in a checkpoint.
 pub const STATE_FILE: &str = "learner.json";
@@ -236,9 +234,8 @@ pub(crate) struct ActorState {
 }
 
 /// Puts the checkpoint's trainers into the registry of a learner being built.
-pub(crate) fn restore_actors(shared: &Shared, state: &LearnerState) {
+pub(crate) fn restore_actors(registry: &Registry, state: &LearnerState) {
     let now = Instant::now();
-    let mut actors = shared.actors.write();
     for a in &state.actors {
         let mut entry = ActorEntry::new(
             ActorRole::Trainer,
@@ -254,10 +251,35 @@ pub(crate) fn restore_actors(shared: &Shared, state: &LearnerState) {
         entry.batches = a.batches;
         entry.transitions = a.transitions;
         entry.weights_version = a.weights_version;
-        actors.insert(a.id.clone(), Arc::new(Mutex::new(entry)));
-        shared
-            .next_ordinal
-            .fetch_max(a.ordinal + 1, Ordering::Relaxed);
+        registry.restore(a.id.clone(), entry);
+    }
+}
+
+/// Checkpoint requests to the trainers, and their answers.
+///
+/// # Locks
+/// `one_at_a_time` is the outermost lock of a checkpoint (before the learner's gate); `taken`
+/// is taken alone, by the checkpoint (released while it waits on `served`) and by each trainer
+/// answering between two updates with no other lock held.
+#[derive(Debug)]
+pub(crate) struct Snapshots {
+    /// Set by a checkpoint for each level; the level's trainer clears it when it answers.
+    pub(crate) requested: Vec<AtomicBool>,
+    /// Each trainer's answer, taken by the checkpoint.
+    taken: Mutex<Vec<Option<LevelSnapshot>>>,
+    served: Condvar,
+    /// One checkpoint at a time.
+    one_at_a_time: Mutex<()>,
+}
+
+impl Snapshots {
+    pub(crate) fn new(levels: usize) -> Self {
+        Self {
+            requested: (0..levels).map(|_| AtomicBool::new(false)).collect(),
+            taken: Mutex::new(vec![None; levels]),
+            served: Condvar::new(),
+            one_at_a_time: Mutex::new(()),
+        }
     }
 }
 
@@ -337,7 +359,7 @@ impl LearnerCheckpoint {
             episodes: state.episodes,
             env_steps: state.env_steps,
             success_rate: state.success_rate,
-            snapshot: Arc::new(WeightsSnapshot {
+            snapshot: std::sync::Arc::new(WeightsSnapshot {
                 version: state.weights_version,
                 levels: levels.clone(),
                 episodes: state.episodes,
@@ -619,13 +641,15 @@ impl FinishedRun {
             .zip(&self.rngs)
             .enumerate()
             .map(|(level, (learner, rng))| {
-                let slot = shared.slots[level].lock();
+                let (covered_episodes, last) = shared
+                    .publisher
+                    .slot(level, |slot| (slot.covered_episodes, slot.last));
                 LevelSnapshot {
                     learner: learner.clone(),
                     rng: rng.clone(),
                     limiter: shared.limiters[level].counts(),
-                    covered_episodes: slot.covered_episodes,
-                    last: slot.last,
+                    covered_episodes,
+                    last,
                 }
             })
             .collect();
@@ -636,10 +660,9 @@ impl FinishedRun {
 impl Shared {
     /// The trainer of `level`, between two updates: answers a checkpoint request.
     pub(crate) fn serve_snapshot(&self, level: usize, learner: &LevelModel, rng: &Rng) {
-        let (covered_episodes, last) = {
-            let slot = self.slots[level].lock();
-            (slot.covered_episodes, slot.last)
-        };
+        let (covered_episodes, last) = self
+            .publisher
+            .slot(level, |slot| (slot.covered_episodes, slot.last));
         let snapshot = LevelSnapshot {
             learner: learner.clone(),
             rng: rng.clone(),
@@ -667,7 +690,7 @@ impl Shared {
             if taken.iter().all(Option::is_some) {
                 return Ok(taken.iter_mut().filter_map(Option::take).collect());
             }
-            if self.finished.load(Ordering::Acquire) {
+            if self.is_finished() {
                 // Trainers stop once the run is finished; they may never answer.
                 for requested in &snapshots.requested {
                     requested.store(false, Ordering::Release);
@@ -683,29 +706,20 @@ impl Shared {
     /// The state of `levels` with this learner's counters, curve and version, and the replay
     /// tables if `with_replay`: what must be read while ingest is paused.
     fn capture(&self, levels: &[LevelSnapshot], with_replay: bool) -> Captured {
-        let (curve, curve_env_steps, curve_updates) = {
-            let c = self.curve.lock();
-            (c.points.clone(), c.last_env_steps, c.last_updates)
-        };
-        let (weights_version, published_episodes) = {
-            let p = self.publisher.lock();
-            (p.version, p.published_episodes)
-        };
+        let (curve, curve_env_steps, curve_updates) = self.curve.capture();
+        let (weights_version, published_episodes) = self.publisher.version_and_episodes();
         let replay = with_replay.then(|| {
             (0..levels.len())
                 .map(|level| self.replay.table(level).to_safetensors())
                 .collect()
         });
-        let best = self.best.latest();
+        let best = self.curve.best().latest();
         let wal_lsn = self.wal.as_ref().map_or(0, crate::Wal::cut);
-        let mut actors: Vec<ActorState> = self
-            .actors
-            .read()
-            .iter()
-            .filter_map(|(id, entry)| {
-                let a = entry.lock();
-                (a.role == ActorRole::Trainer && a.stored_through > 0).then(|| ActorState {
-                    id: id.clone(),
+        let mut actors: Vec<ActorState> = Vec::new();
+        self.registry.each(|id, a| {
+            if a.role == ActorRole::Trainer && a.stored_through > 0 {
+                actors.push(ActorState {
+                    id: id.to_string(),
                     hostname: a.hostname.clone(),
                     ordinal: a.ordinal,
                     incarnation: a.incarnation,
@@ -715,9 +729,9 @@ impl Shared {
                     batches: a.batches,
                     transitions: a.transitions,
                     weights_version: a.weights_version,
-                })
-            })
-            .collect();
+                });
+            }
+        });
         actors.sort_by(|a, b| a.id.cmp(&b.id));
         let state = LearnerState {
             format: STATE_FORMAT.into(),
@@ -726,7 +740,7 @@ impl Shared {
             run_config_digest: self.digest.clone(),
             weights_version,
             published_episodes,
-            next_incarnation: self.next_incarnation.load(Ordering::Relaxed),
+            next_incarnation: self.registry.next_incarnation(),
             elapsed_s: self.elapsed().as_secs_f64(),
             completed: self.completed.lock().clone(),
             counters: CounterState::of(&self.counters),
