@@ -9,7 +9,7 @@
 //! sleeps on the `ingest` event, and every few seconds it removes dead nodes and the ack services
 //! nobody listens to any more, and logs the summary of refusals not logged one by one (a
 //! `RefusalLog`). *Weights* waits for each new snapshot in the learner's
-//! [`Published`](hac_proto::Published) cell and publishes it packed, with history 1. With a
+//! [`Published`] cell and publishes it packed, with history 1. With a
 //! write-ahead log, a third thread, *commits*, signals the `ingest` event after each commit of
 //! the log, so that durability advancing reaches the actors at once, without new messages.
 
