@@ -1,5 +1,7 @@
 //! [`run_actor`]: the actor loop, written against [`ActorLink`] so that the embedded run, the
-//! actor daemon and tests run the same code.
+//! actor daemon and tests run the same code. Its parts take the half of the link they use: the
+//! episode sender and the wait for acks an [`IngestSink`], the wait for weights a
+//! [`WeightsSource`].
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -8,7 +10,7 @@ use std::time::{Duration, Instant};
 use hac_agent::{RunConfig, RunConfigError, test_episodes};
 use hac_core::{Episodes, GaussianExploration, Mode, Rng};
 use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, EvaluationOf, LinkError};
+use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
 
 use crate::{Adder, SnapshotPolicy};
 
@@ -256,33 +258,17 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         self.interrupt.load(Ordering::Relaxed)
     }
 
-    /// Waits for a snapshot satisfying `ready` (or a final one), in slices so that an interrupt
-    /// is noticed; `None` if interrupted. `ready` also gets the learner's newest version, read
-    /// again each slice (it drops when a restarted learner starts counting again).
+    /// [`wait_weights`] from this actor's link, with its interrupt and weights timeout.
     fn wait_weights(
         &self,
         ready: impl Fn(&WeightsSnapshot, u64) -> bool,
     ) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
-        let started = Instant::now();
-        loop {
-            if self.interrupted() {
-                return Ok(None);
-            }
-            let slice = Duration::from_millis(200);
-            let newest = self.link.learner_version();
-            if let Some(w) = self
-                .link
-                .weights()
-                .wait_for(slice, |w| w.run_finished || ready(w, newest))
-            {
-                return Ok(Some(w));
-            }
-            if let Some(limit) = self.options.weights_timeout
-                && started.elapsed() >= limit
-            {
-                return Err(ActorError::WeightsTimeout(limit));
-            }
-        }
+        wait_weights(
+            &*self.link,
+            self.interrupt,
+            self.options.weights_timeout,
+            ready,
+        )
     }
 
     /// `snapshot`'s policy. If its weights are unusable (not finite, or not the run's shape),
@@ -403,16 +389,16 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             &mut s.train_rng,
             &mut s.adder,
         );
-        for item in s.adder.drain() {
-            self.link.send(item).map_err(ActorError::Link)?;
-        }
-        self.link
-            .send(IngestItem::Episode {
+        send_episode(
+            &mut *self.link,
+            &mut s.adder,
+            IngestItem::Episode {
                 env_steps: outcome.steps as u64,
                 success: outcome.success,
                 weights_version: p.version(),
-            })
-            .map_err(ActorError::Link)?;
+            },
+        )
+        .map_err(ActorError::Link)?;
         s.summary.episodes += 1;
         s.summary.env_steps += outcome.steps as u64;
         s.summary.successes += u64::from(outcome.success);
@@ -461,18 +447,9 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         }
     }
 
-    /// Backpressure in whole episodes: the next episode starts only once the learner has
-    /// acknowledged this one. When training falls behind, the learner withholds acks and every
-    /// actor waits here, instead of piling up episodes played with ever staler weights.
+    /// [`wait_acked`] on this actor's link.
     fn wait_acked(&mut self) -> Result<(), ActorError> {
-        loop {
-            match self.link.flush(Duration::from_millis(200)) {
-                Ok(()) => return Ok(()),
-                Err(LinkError::TimedOut(_)) if !self.interrupted() => continue,
-                Err(LinkError::TimedOut(_)) => return Ok(()),
-                Err(e) => return Err(ActorError::Link(e)),
-            }
-        }
+        wait_acked(&mut *self.link, self.interrupt)
     }
 
     /// One test round of the run's `test_episodes` with `policy`, reported to the learner.
@@ -553,6 +530,65 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                 self.s.summary.run_finished = true;
                 return Ok(());
             }
+        }
+    }
+}
+
+/// Waits for a snapshot from `source` satisfying `ready` (or a final one), in slices so that an
+/// interrupt is noticed; `None` if interrupted, [`ActorError::WeightsTimeout`] after `timeout`.
+/// `ready` also gets the learner's newest version, read again each slice (it drops when a
+/// restarted learner starts counting again).
+fn wait_weights(
+    source: &dyn WeightsSource,
+    interrupt: &AtomicBool,
+    timeout: Option<Duration>,
+    ready: impl Fn(&WeightsSnapshot, u64) -> bool,
+) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
+    let started = Instant::now();
+    loop {
+        if interrupt.load(Ordering::Relaxed) {
+            return Ok(None);
+        }
+        let slice = Duration::from_millis(200);
+        let newest = source.learner_version();
+        if let Some(w) = source
+            .weights()
+            .wait_for(slice, |w| w.run_finished || ready(w, newest))
+        {
+            return Ok(Some(w));
+        }
+        if let Some(limit) = timeout
+            && started.elapsed() >= limit
+        {
+            return Err(ActorError::WeightsTimeout(limit));
+        }
+    }
+}
+
+/// Sends one played episode to `sink`: the transition batches `adder` packed, then `end` (its
+/// [`IngestItem::Episode`]).
+fn send_episode(
+    sink: &mut dyn IngestSink,
+    adder: &mut Adder,
+    end: IngestItem,
+) -> Result<(), LinkError> {
+    for item in adder.drain() {
+        sink.send(item)?;
+    }
+    sink.send(end)
+}
+
+/// Backpressure in whole episodes: the next episode starts only once the learner has
+/// acknowledged this one. When training falls behind, the learner withholds acks and every
+/// actor waits here, instead of piling up episodes played with ever staler weights. Returns
+/// without waiting longer once `interrupt` is set.
+fn wait_acked(sink: &mut dyn IngestSink, interrupt: &AtomicBool) -> Result<(), ActorError> {
+    loop {
+        match sink.flush(Duration::from_millis(200)) {
+            Ok(()) => return Ok(()),
+            Err(LinkError::TimedOut(_)) if !interrupt.load(Ordering::Relaxed) => continue,
+            Err(LinkError::TimedOut(_)) => return Ok(()),
+            Err(e) => return Err(ActorError::Link(e)),
         }
     }
 }

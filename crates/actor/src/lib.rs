@@ -8,15 +8,15 @@
 //!   its turn and plays with the weights it names).
 //! - [`Adder`]: packs transitions into per-level batches.
 //! - [`SnapshotPolicy`]: a published weights version as the rollout's policy.
-//! - [`train_embedded`]: learner + one actor in one process over the in-process transport: the
-//!   `hac train` default.
+//!
+//! The actor depends on the wire contract (`hac-proto`) and the link traits (`hac-transport`),
+//! not on the learner: the embedded run (learner and actor in one process) is
+//! `hac_serve::train_embedded`.
 
 mod actor;
 mod adder;
-mod embedded;
 mod policy;
 
 pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, run_actor};
 pub use adder::Adder;
-pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded};
 pub use policy::{SnapshotPolicy, UnusableWeights, best_policy};

@@ -1,24 +1,33 @@
-//! How an actor reaches the learner: the [`ActorLink`] trait, and its implementations.
+//! How an actor reaches the learner: the [`ActorLink`] trait, and its implementations on the
+//! actor's side. This crate does not depend on the learner: the learner's side of every
+//! transport (the gRPC and shared-memory servers, the in-process link) is `hac-serve`, built on
+//! the wire contract (`hac-proto`) and the pieces both sides share, which are here.
 //!
-//! - [`InProcess`]: direct calls into a [`Learner`] in the same process (the embedded `hac train`
-//!   and tests). Nothing is lost in transit, so every message is acknowledged as it is stored.
-//! - [`grpc`]: the learner service over tonic, for actors on any host: the server adapter
-//!   ([`grpc::serve`], [`grpc::LearnerGrpc`]) and the actor's side ([`grpc::GrpcLink`]).
+//! [`ActorLink`] is split as Acme splits an actor's client: an [`IngestSink`] (the sending half:
+//! send, flush) and a [`WeightsSource`] (the weights half: the latest weights, the learner's
+//! newest version), with registration, episode turns, evaluation reports and the link's
+//! counters on top.
+//!
+//! - [`grpc`]: the learner service over tonic, for actors on any host: the actor's side
+//!   ([`grpc::GrpcLink`]), and the status, health, reflection, token and TLS pieces every server
+//!   carries (the learner's and an actor daemon's own).
 //! - [`shm`]: shared memory (iceoryx2) for actors on the learner's host, beside gRPC: the
-//!   learner's [`shm::ShmServer`] and the actor's [`shm::ShmLink`] (which keeps gRPC for
-//!   registration and falls back to it when shared memory is not offered).
+//!   actor's [`shm::ShmLink`] (which keeps gRPC for registration and falls back to it when
+//!   shared memory is not offered), and the services, acks and checks the learner's server
+//!   shares.
 //!
 //! - [`security`]: the bearer token and TLS settings of servers and clients.
-//! - [`metrics`]: Prometheus text exposition over HTTP (`/metrics`), and the learner's metrics.
+//! - [`metrics`]: Prometheus text exposition over HTTP (`/metrics`), and an actor daemon's
+//!   metrics.
+//! - [`refusal_log`]: rate-limited warnings about refused input, for every server.
 //!
-//! The actor loop (`hac-actor`) is written against the trait only, so every transport runs the
+//! The actor loop (`hac-actor`) is written against the traits only, so every transport runs the
 //! same actor code.
 
 pub mod grpc;
 mod held;
-mod in_process;
 pub mod metrics;
-mod refusal_log;
+pub mod refusal_log;
 pub mod security;
 pub mod shm;
 
@@ -28,8 +37,6 @@ use std::time::Duration;
 
 use hac_proto::Published;
 use hac_proto::{Admission, IngestItem, Registration, WeightsSnapshot};
-
-pub use in_process::InProcess;
 
 /// Why a link operation failed.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -47,7 +54,7 @@ pub enum LinkError {
     /// The link was shut down.
     #[error("the link is closed")]
     Closed,
-    /// [`ActorLink::flush`] ran out of time with this many messages unacknowledged; the link
+    /// [`IngestSink::flush`] ran out of time with this many messages unacknowledged; the link
     /// itself is fine (the learner is withholding acks, or reconnecting).
     #[error("{0} messages still unacknowledged")]
     TimedOut(usize),
@@ -63,14 +70,11 @@ pub struct EvaluationOf {
     pub successes: u32,
 }
 
-/// The actor's side of a connection to the learner. Implementations keep every sent item until
-/// the learner acknowledges it and resend after reconnecting, so an item handed to
-/// [`send`](Self::send) is stored exactly once unless the actor process dies first.
-pub trait ActorLink: Send {
-    /// Registers the actor (once; implementations re-register by themselves after a learner
-    /// restart).
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError>;
-
+/// The sending half of a link: items to the learner, and waits for their acknowledgement.
+/// Implementations keep every sent item until the learner acknowledges it and resend after
+/// reconnecting, so an item handed to [`send`](Self::send) is stored exactly once unless the
+/// actor process dies first.
+pub trait IngestSink: Send {
     /// Queues one item for the learner. Blocks while the learner applies backpressure (the
     /// window of unacknowledged items is full); the link numbers items itself.
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError>;
@@ -79,18 +83,29 @@ pub trait ActorLink: Send {
     /// ([`LinkError::TimedOut`]).
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError>;
 
-    /// Blocks until every item sent so far is durable (in the learner's write-ahead log, see
-    /// `hac_learner::wal`; without a log, acknowledged), or `timeout` passes. Links that do not
-    /// track durability wait for acknowledgements.
+    /// Blocks until every item sent so far is durable (in the learner's write-ahead log; without
+    /// a log, acknowledged), or `timeout` passes. Links that do not track durability wait for
+    /// acknowledgements.
     fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
         self.flush(timeout)
     }
+}
 
+/// The weights half of a link: what the learner published, as received.
+pub trait WeightsSource {
     /// The latest weights the link has received, waitable.
     fn weights(&self) -> &Published<WeightsSnapshot>;
 
     /// The newest weights version the learner has announced (in acks), for the staleness bound.
     fn learner_version(&self) -> u64;
+}
+
+/// The actor's side of a connection to the learner: an [`IngestSink`] and a [`WeightsSource`],
+/// with registration, episode turns, evaluation reports and the link's counters.
+pub trait ActorLink: IngestSink + WeightsSource {
+    /// Registers the actor (once; implementations re-register by themselves after a learner
+    /// restart).
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError>;
 
     /// Episode turns (a learner with `episodes_in_flight` > 0; see the learner's `await_turn`):
     /// waits up to about `wait` for this trainer's turn to play its next episode. `Some(n)`:

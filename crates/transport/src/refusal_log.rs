@@ -1,5 +1,5 @@
-//! [`RefusalLog`]: warnings about refused input, rate limited, shared by the gRPC and the
-//! shared-memory servers. A broken or hostile client can be refused thousands of times a second,
+//! [`RefusalLog`]: warnings about refused input, rate limited, shared by the learner's gRPC and
+//! shared-memory servers (in `hac-serve`) and the token check of every server. A broken or hostile client can be refused thousands of times a second,
 //! and a line per refusal would drown the log and cost more than the refusal itself. So the first
 //! refusal of each (reason, actor) pair in an interval is logged in full, later ones are only
 //! counted, and when an interval in which some were not logged ends, one summary line gives its
@@ -13,7 +13,7 @@ use hac_proto::RejectReason;
 use parking_lot::Mutex;
 
 /// How often the counts of refusals not logged are summarized.
-pub(crate) const SUMMARY_INTERVAL: Duration = Duration::from_secs(10);
+pub const SUMMARY_INTERVAL: Duration = Duration::from_secs(10);
 /// Distinct (reason, actor) pairs tracked per interval; refusals of further pairs are logged
 /// only in the summary, by reason (a client inventing ids must not grow this without bound).
 const MAX_PAIRS: usize = 32;
@@ -22,7 +22,7 @@ const NO_ACTOR: &str = "(unknown)";
 
 /// Rate-limited refusal warnings; see the module docs.
 #[derive(Debug)]
-pub(crate) struct RefusalLog {
+pub struct RefusalLog {
     interval: Duration,
     state: Mutex<Interval>,
 }
@@ -58,7 +58,8 @@ pub(crate) struct Summary {
 }
 
 impl RefusalLog {
-    pub(crate) fn new(interval: Duration) -> Self {
+    /// A log that summarizes every `interval` (servers use [`SUMMARY_INTERVAL`]).
+    pub fn new(interval: Duration) -> Self {
         Self {
             interval,
             state: Mutex::new(Interval::new(Instant::now())),
@@ -69,7 +70,7 @@ impl RefusalLog {
     /// a warning if it is the first of its pair in this interval, else only counted. `what`
     /// names the input (`ingest message`, `registration`, ...). `finished` is the normal end
     /// of a run, not a warning.
-    pub(crate) fn refused(
+    pub fn refused(
         &self,
         what: &'static str,
         reason: RejectReason,
@@ -93,7 +94,7 @@ impl RefusalLog {
 
     /// Logs the summary of the interval if it has ended: servers call this now and then, so
     /// that the end of a burst is reported without waiting for the next refusal.
-    pub(crate) fn flush(&self) {
+    pub fn flush(&self) {
         if let Some(summary) = self.take_summary(Instant::now()) {
             summary.log();
         }

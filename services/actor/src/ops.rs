@@ -17,7 +17,7 @@ use hac_transport::grpc::{
 };
 use hac_transport::metrics::{actor_metrics, serve_metrics};
 use hac_transport::security::{ClientTls, Token};
-use hac_transport::{ActorLink, EvaluationOf, LinkError, LinkStats};
+use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
@@ -209,13 +209,7 @@ impl<'a> Observed<'a> {
     }
 }
 
-impl ActorLink for Observed<'_> {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        let admission = self.inner.register(registration)?;
-        self.board.state.store(RUNNING, Ordering::Relaxed);
-        Ok(admission)
-    }
-
+impl IngestSink for Observed<'_> {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         let episode = match &item {
             IngestItem::Episode {
@@ -243,13 +237,23 @@ impl ActorLink for Observed<'_> {
     fn flush_durable(&mut self, timeout: Duration) -> Result<(), LinkError> {
         self.inner.flush_durable(timeout)
     }
+}
 
+impl WeightsSource for Observed<'_> {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         self.inner.weights()
     }
 
     fn learner_version(&self) -> u64 {
         self.inner.learner_version()
+    }
+}
+
+impl ActorLink for Observed<'_> {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        let admission = self.inner.register(registration)?;
+        self.board.state.store(RUNNING, Ordering::Relaxed);
+        Ok(admission)
     }
 
     fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use hac_learner::Learner;
 use hac_proto::{ActorRole, Registration, encode_batch, pb};
-use hac_transport::grpc::{ServerOptions, serve};
+use hac_serve::grpc::{ServerOptions, serve};
 use tokio::sync::Semaphore;
 use tokio_stream::wrappers::ReceiverStream;
 

@@ -10,11 +10,11 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use hac_learner::{Learner, Published};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::ActorLink;
-use hac_transport::grpc::{GrpcLinkOptions, ServerOptions, serve};
-use hac_transport::shm::{
-    Namespace, ShmLink, ShmLinkOptions, ShmMode, ShmServer, ShmServerOptions, WeightsReceiver,
-};
+use hac_serve::grpc::{ServerOptions, serve};
+use hac_serve::shm::{ShmServer, ShmServerOptions};
+use hac_transport::grpc::GrpcLinkOptions;
+use hac_transport::shm::{Namespace, ShmLink, ShmLinkOptions, ShmMode, WeightsReceiver};
+use hac_transport::{ActorLink, IngestSink};
 
 use crate::bench::{
     IngestBench, IngestReport, Measured, Transport, level0_batch, percentiles, run_senders,

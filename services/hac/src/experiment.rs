@@ -18,9 +18,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use hac_actor::train_embedded;
 use hac_agent::RoundReport;
 use hac_core::hiro::Algo;
+use hac_serve::train_embedded;
 
 use crate::config::{self, RunConfig};
 use crate::plot;

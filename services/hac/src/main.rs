@@ -43,9 +43,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
-use hac_actor::train_embedded;
 use hac_agent::{Agent, RoundReport};
 use hac_run::daemon::{self, ConfigFile, Mount};
+use hac_serve::train_embedded;
 
 #[derive(Debug, Parser)]
 #[command(

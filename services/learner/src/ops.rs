@@ -9,8 +9,9 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use hac_learner::Learner;
 use hac_run::security::{ServerTlsArgs, TokenArgs};
+use hac_serve::metrics::learner_metrics;
 use hac_transport::grpc::ServerSecurity;
-use hac_transport::metrics::{learner_metrics, serve_metrics};
+use hac_transport::metrics::serve_metrics;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 

@@ -50,7 +50,7 @@ use tonic::{Code, Status};
 use super::{reject_reason, until_set};
 use crate::held::Held;
 use crate::security::{BearerToken, ClientTls, EndpointError, Token, endpoint};
-use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
+use crate::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
 
 /// The link's channel: every request carries the token, if any.
 type LinkChannel = InterceptedService<Channel, BearerToken>;
@@ -58,11 +58,11 @@ type LinkChannel = InterceptedService<Channel, BearerToken>;
 /// How a [`GrpcLink`] talks to the learner.
 #[derive(Debug, Clone)]
 pub struct GrpcLinkOptions {
-    /// Most messages sent and not yet acknowledged; [`ActorLink::send`] blocks while the window
+    /// Most messages sent and not yet acknowledged; [`IngestSink::send`] blocks while the window
     /// is full, which is how the learner's backpressure reaches the actor.
     pub window: usize,
     /// Most messages kept until the learner says they are durable (acknowledged ones included);
-    /// [`ActorLink::send`] blocks while this many are held, so that a learner whose log falls
+    /// [`IngestSink::send`] blocks while this many are held, so that a learner whose log falls
     /// behind holds its actors back too. Bounds the ack-durable gap, with the learner's commit
     /// interval.
     pub max_held: usize,
@@ -350,11 +350,7 @@ impl GrpcLink {
     }
 }
 
-impl ActorLink for GrpcLink {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        self.register_naming(registration, None)
-    }
-
+impl IngestSink for GrpcLink {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         // Encode outside the lock; the numbering is filled in under it.
         let mut msg = pb::IngestRequest::from(IngestMessage {
@@ -440,13 +436,21 @@ impl ActorLink for GrpcLink {
             }
         }
     }
+}
 
+impl WeightsSource for GrpcLink {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         &self.shared.weights
     }
 
     fn learner_version(&self) -> u64 {
         self.shared.stats.learner_version()
+    }
+}
+
+impl ActorLink for GrpcLink {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.register_naming(registration, None)
     }
 
     fn stats(&self) -> Option<Arc<LinkStats>> {

@@ -15,14 +15,15 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 
+use hac_proto::RejectReason;
 use tonic::body::Body;
 use tonic::server::NamedService;
 use tonic::{Code, Status};
 
-use super::server::malformed;
+use super::refusal_status;
 
 /// Told about each refusal (its message): the learner counts and logs it.
-pub(crate) type OnMalformed = Arc<dyn Fn(&str) + Send + Sync>;
+pub type OnMalformed = Arc<dyn Fn(&str) + Send + Sync>;
 
 /// A tonic service whose decoding failures are `INVALID_ARGUMENT`/`malformed` refusals; see the
 /// module docs.
@@ -33,7 +34,8 @@ pub struct RefuseUndecodable<S> {
 }
 
 impl<S> RefuseUndecodable<S> {
-    pub(crate) fn new(inner: S, on_malformed: Option<OnMalformed>) -> Self {
+    /// Wraps `inner`; `on_malformed` (if any) is told about each refusal.
+    pub fn new(inner: S, on_malformed: Option<OnMalformed>) -> Self {
         Self {
             inner,
             on_malformed,
@@ -80,7 +82,13 @@ where
             if let Some(report) = &on_malformed {
                 report(&message);
             }
-            Ok(Status::from(malformed(message)).into_http())
+            Ok(malformed(message).into_http())
         })
     }
+}
+
+/// The refusal of bytes that do not decode as the expected message, on every RPC:
+/// `INVALID_ARGUMENT`/`malformed`.
+fn malformed(message: String) -> Status {
+    refusal_status(RejectReason::Malformed, Code::InvalidArgument, message)
 }

@@ -1,14 +1,13 @@
-//! The learner service over gRPC (tonic), both ends of it, and the operations services every
-//! server carries.
+//! The learner service over gRPC (tonic): the actor's end of it, and what every server
+//! carries. The learner's end (`hac_serve::grpc`: the `hac.v1.Learner` service over a learner,
+//! and the server that runs it with status, health and reflection) is built on the pieces here.
 //!
-//! - `server`: [`LearnerGrpc`] adapts a [`Learner`](hac_learner::Learner) to the generated
-//!   `hac.v1.Learner` service, and [`serve`] runs it, with status, health and reflection, on a
-//!   bound listener until a shutdown future completes.
 //! - `status`: [`StatusGrpc`], the `hac.v1.Status` service over any [`StatusSource`] (the
-//!   learner; an actor daemon's [`ActorNodeStatus`]).
+//!   learner, in `hac-serve`; an actor daemon's [`ActorNodeStatus`]).
 //! - `ops`: [`Health`] (`grpc.health.v1`), reflection, the token check and TLS
-//!   ([`ServerSecurity`]) shared by every server, and [`serve_status`], an actor daemon's own
-//!   status server.
+//!   ([`ServerSecurity`], [`router`], [`serve_router`]) shared by every server, and
+//!   [`serve_status`], an actor daemon's own status server.
+//! - `malformed`: [`RefuseUndecodable`], the same refusal for undecodable bytes on every RPC.
 //! - `client`: [`GrpcLink`], the [`ActorLink`](crate::ActorLink) of actors on any host: a small
 //!   tokio runtime of its own behind the trait's blocking methods, with a window of unacknowledged
 //!   messages, reconnects with backoff, and re-registration after a learner restart.
@@ -36,20 +35,21 @@
 mod client;
 mod malformed;
 mod ops;
-mod server;
 mod status;
 
 use hac_proto::RejectReason;
 use tokio::sync::watch;
-use tonic::Status;
+use tonic::metadata::MetadataValue;
+use tonic::{Code, Status};
 
 pub use client::{ConnectError, GrpcLink, GrpcLinkOptions};
-pub use malformed::RefuseUndecodable;
-pub use ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, serve_status};
-pub use server::{LearnerGrpc, ServerOptions, serve};
+pub use malformed::{OnMalformed, RefuseUndecodable};
+pub use ops::{
+    Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, router, serve_router, serve_status,
+};
 pub use status::{
     ActorNodeStatus, DEFAULT_WATCH_INTERVAL, MIN_WATCH_INTERVAL, StatusGrpc, StatusSource,
-    learner_status, role_name,
+    role_name,
 };
 
 /// The status metadata key naming the [`RejectReason`] of a refusal.
@@ -62,8 +62,18 @@ pub fn reject_reason(status: &Status) -> Option<RejectReason> {
     RejectReason::ALL.into_iter().find(|r| r.name() == value)
 }
 
+/// A refusal as a gRPC status: `code`, `message`, and `reason` in the [`REJECT_REASON_KEY`]
+/// metadata. Every refusal of every server is made here.
+pub fn refusal_status(reason: RejectReason, code: Code, message: String) -> Status {
+    let mut status = Status::new(code, message);
+    status
+        .metadata_mut()
+        .insert(REJECT_REASON_KEY, MetadataValue::from_static(reason.name()));
+    status
+}
+
 /// Completes once `flag` is set (or its sender is gone). Returns nothing, so that no borrow of
 /// the channel outlives the wait (a `select!` holds its branches' outputs across the handler).
-async fn until_set(flag: &mut watch::Receiver<bool>) {
+pub async fn until_set(flag: &mut watch::Receiver<bool>) {
     let _ = flag.wait_for(|&set| set).await;
 }

@@ -1,5 +1,6 @@
 //! What every hac gRPC server carries besides its own service: the standard health service
-//! ([`Health`]), server reflection (v1 and v1alpha), the token check ([`AuthLayer`]) and TLS;
+//! ([`Health`]), server reflection (v1 and v1alpha), the token check ([`AuthLayer`]) and TLS
+//! ([`router`], [`serve_router`]: the learner's server in `hac-serve` is built on them too);
 //! and [`serve_status`], the small server of an actor daemon (status, health, reflection).
 
 use std::future::Future;
@@ -77,7 +78,7 @@ impl Health {
 /// A server with `security` applied (TLS if configured, and the token check, which calls
 /// `on_refused` for each request it refuses) and health (reported by `health`) and reflection
 /// (advertising `services`, health and reflection) added; the caller adds its own services.
-pub(crate) fn router(
+pub fn router(
     security: &ServerSecurity,
     on_refused: Option<Arc<dyn Fn() + Send + Sync>>,
     health: &Health,
@@ -101,7 +102,7 @@ pub(crate) fn router(
 
 /// Serves `router` on `listener` until `shutdown` completes; then stops accepting connections
 /// and waits up to `drain_timeout` for the open ones to close.
-pub(crate) async fn serve_router(
+pub async fn serve_router(
     router: Router<Stack<AuthLayer, Identity>>,
     listener: TcpListener,
     drain_timeout: Duration,

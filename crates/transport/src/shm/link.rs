@@ -31,15 +31,13 @@ use iceoryx2::prelude::{
 };
 use iceoryx2::service::port_factory::{event, publish_subscribe};
 
-use super::server::{open_ack_events, open_acks};
-use super::space::segment_bytes;
 use super::{
     Ack, AckWire, Ipc, Namespace, Node, ShmError, WeightsReceiver, check_free_space,
-    cleanup_dead_nodes, host_identity,
+    cleanup_dead_nodes, host_identity, open_ack_events, open_acks, segment_bytes,
 };
 use crate::grpc::{ConnectError, GrpcLink, GrpcLinkOptions};
 use crate::held::Held;
-use crate::{ActorLink, EvaluationOf, LinkError, LinkStats};
+use crate::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
 
 /// Whether shared memory is required or only preferred.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -767,27 +765,7 @@ fn transitions_of(item: &IngestItem) -> u64 {
     }
 }
 
-impl ActorLink for ShmLink {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        let mut registration = registration.clone();
-        if !registration
-            .transports
-            .iter()
-            .any(|t| t == super::TRANSPORT)
-        {
-            registration.transports.push(super::TRANSPORT.into());
-        }
-        let admission = self.grpc.register(&registration)?;
-        self.registration = Some(registration);
-        self.digest = admission.run_config_digest.clone();
-        self.incarnation = admission.incarnation;
-        self.held.renumber();
-        self.sent_through = 0;
-        self.attach(&admission)?;
-        self.pump()?;
-        Ok(admission)
-    }
-
+impl IngestSink for ShmLink {
     /// Blocks while a window of messages is unacknowledged or `max_held` are not durable (or,
     /// with [`Overflow::Drop`], drops a transition batch then), as the gRPC link does.
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
@@ -862,7 +840,9 @@ impl ActorLink for ShmLink {
             self.wait(Some(deadline))?;
         }
     }
+}
 
+impl WeightsSource for ShmLink {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         if self.attached.is_some() {
             &self.weights
@@ -877,6 +857,28 @@ impl ActorLink for ShmLink {
         } else {
             self.grpc.learner_version()
         }
+    }
+}
+
+impl ActorLink for ShmLink {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        let mut registration = registration.clone();
+        if !registration
+            .transports
+            .iter()
+            .any(|t| t == super::TRANSPORT)
+        {
+            registration.transports.push(super::TRANSPORT.into());
+        }
+        let admission = self.grpc.register(&registration)?;
+        self.registration = Some(registration);
+        self.digest = admission.run_config_digest.clone();
+        self.incarnation = admission.incarnation;
+        self.held.renumber();
+        self.sent_through = 0;
+        self.attach(&admission)?;
+        self.pump()?;
+        Ok(admission)
     }
 
     /// Over the gRPC control link, like registration.

@@ -2,8 +2,12 @@
 //! and events over `/dev/shm`): transition batches go to the learner without serialisation or a
 //! system call per batch, and every weights version reaches the actors once, whoever joins late.
 //!
-//! - [`ShmServer`] (learner side) runs beside the gRPC server, on two threads of its own: one
-//!   takes ingest messages in place and acknowledges them, one publishes weights.
+//! - The learner's side, `hac_serve::shm::ShmServer`, runs beside the gRPC server, on threads
+//!   of its own: one takes ingest messages in place and acknowledges them, one publishes
+//!   weights. It is built from what this module shares with the actor's side: the service names
+//!   of a [`Namespace`], the [`Ack`] and its wire form, the ack services ([`open_acks`],
+//!   [`open_ack_events`]), iceoryx2 nodes ([`node`], [`cleanup_dead_nodes`]) and the free-space
+//!   check.
 //! - [`ShmLink`] (actor side) is an [`ActorLink`](crate::ActorLink): batches and episode
 //!   summaries over shared memory, the control plane (registration, evaluation reports) over a
 //!   [`GrpcLink`](crate::grpc::GrpcLink). With [`ShmMode::Prefer`] it falls back to gRPC for
@@ -31,7 +35,7 @@
 //! durable ([`Ack::durable_through`]: in the learner's write-ahead log), and never has more
 //! unacknowledged messages than the learner's subscriber buffer holds (the window), so nothing
 //! is ever dropped in shared memory. The learner reads a message only while
-//! it has room (its rate limiter), stores it through [`Learner::ingest_ref`](hac_learner::Learner)
+//! it has room (its rate limiter), stores it through the learner's `ingest_ref`
 //! (the same checks, counts and dedup by actor, incarnation and sequence as gRPC), and acks it;
 //! when training falls behind it reads nothing, acks stop, and actors block in `send` (or, if
 //! asked, drop new batches and count them: [`Overflow::Drop`]). A refusal travels in the ack
@@ -51,7 +55,6 @@
 //! `/tmp/iceoryx2`; containers that share memory must share that directory and `/dev/shm`.
 
 mod link;
-mod server;
 mod space;
 mod weights;
 
@@ -63,18 +66,22 @@ use hac_proto::RejectReason;
 use iceoryx2::prelude::{
     LogLevel, NodeBuilder, NodeName, ServiceName, SignalHandlingMode, set_log_level_from_env_or,
 };
+use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 pub use link::{Overflow, ShmLink, ShmLinkOptions, ShmMode};
-pub use server::{ShmServer, ShmServerOptions};
-pub use space::{SHM_DIR, check_free_space};
+pub use space::{SHM_DIR, check_free_space, segment_bytes};
 pub use weights::WeightsReceiver;
 
 /// The transport name actors list at registration to be offered shared memory.
 pub const TRANSPORT: &str = "shm";
 
-/// iceoryx2's inter-process service with thread-safe ports (links must be `Send`).
-type Ipc = iceoryx2::prelude::ipc_threadsafe::Service;
-type Node = iceoryx2::node::Node<Ipc>;
+/// iceoryx2's inter-process service with thread-safe ports (links must be `Send`), on both
+/// sides.
+pub type Ipc = iceoryx2::prelude::ipc_threadsafe::Service;
+/// An iceoryx2 node of this process (see [`node`]).
+pub type Node = iceoryx2::node::Node<Ipc>;
+/// The ack service of one actor incarnation (see [`open_acks`]).
+pub type AckService = publish_subscribe::PortFactory<Ipc, AckWire, ()>;
 
 /// Why shared memory could not be set up or used.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -104,7 +111,8 @@ pub enum ShmError {
 }
 
 impl ShmError {
-    fn iceoryx(what: impl Into<String>, error: impl fmt::Display) -> Self {
+    /// An [`Iceoryx`](Self::Iceoryx) error: `what` step failed with `error`.
+    pub fn iceoryx(what: impl Into<String>, error: impl fmt::Display) -> Self {
         Self::Iceoryx {
             what: what.into(),
             message: error.to_string(),
@@ -118,6 +126,7 @@ impl ShmError {
 pub struct Namespace(String);
 
 impl Namespace {
+    /// The longest namespace.
     pub const MAX_LEN: usize = 96;
 
     /// The namespace of the run with config digest `digest` served at `addr`: unique among the
@@ -151,6 +160,7 @@ impl Namespace {
         }
     }
 
+    /// The namespace without the `hac/` prefix.
     pub fn as_str(&self) -> &str {
         &self.0
     }
@@ -160,17 +170,19 @@ impl Namespace {
         ServiceName::new(&name).map_err(|e| ShmError::iceoryx(format!("service name `{name}`"), e))
     }
 
-    fn ingest(&self) -> Result<ServiceName, ShmError> {
+    /// The `ingest` service (messages and their event), actors -> learner.
+    pub fn ingest(&self) -> Result<ServiceName, ShmError> {
         self.service("ingest")
     }
 
-    fn weights(&self) -> Result<ServiceName, ShmError> {
+    /// The `weights` service (snapshots and their event), learner -> actors.
+    pub fn weights(&self) -> Result<ServiceName, ShmError> {
         self.service("weights")
     }
 
     /// One actor incarnation's acks. Actor ids are free text: a hash stands in for them (the
     /// ack itself carries the incarnation, which the actor checks).
-    fn acks(&self, actor_id: &str, incarnation: u64) -> Result<ServiceName, ShmError> {
+    pub fn acks(&self, actor_id: &str, incarnation: u64) -> Result<ServiceName, ShmError> {
         self.service(&format!("acks/{:016x}-{incarnation}", fnv1a(actor_id)))
     }
 }
@@ -222,10 +234,11 @@ pub struct Ack {
 
 /// An [`Ack`] in shared memory: `acked_through`, `weights_version`, the refusal's code (0: none,
 /// else 1 + its index in [`RejectReason::ALL`]), `incarnation`, `durable_through`.
-type AckWire = [u64; 5];
+pub type AckWire = [u64; 5];
 
 impl Ack {
-    fn to_wire(self) -> AckWire {
+    /// The ack as published to the actor.
+    pub fn to_wire(self) -> AckWire {
         let refusal = self.refusal.map_or(0, |r| {
             1 + RejectReason::ALL.iter().position(|&x| x == r).unwrap_or(0) as u64
         });
@@ -238,8 +251,8 @@ impl Ack {
         ]
     }
 
-    /// `None` for a refusal code this build does not know.
-    fn from_wire(wire: &AckWire) -> Option<Self> {
+    /// An ack as received; `None` for a refusal code this build does not know.
+    pub fn from_wire(wire: &AckWire) -> Option<Self> {
         let refusal = match wire[2] {
             0 => None,
             code => Some(*RejectReason::ALL.get(usize::try_from(code - 1).ok()?)?),
@@ -254,9 +267,9 @@ impl Ack {
     }
 }
 
-/// A node of this process: no signal handlers of its own (the daemons handle SIGINT and
-/// SIGTERM), iceoryx2's log at warnings and up unless `IOX2_LOG_LEVEL` says otherwise.
-fn node(name: &str) -> Result<Node, ShmError> {
+/// A node of this process named `name`: no signal handlers of its own (the daemons handle
+/// SIGINT and SIGTERM), iceoryx2's log at warnings and up unless `IOX2_LOG_LEVEL` says otherwise.
+pub fn node(name: &str) -> Result<Node, ShmError> {
     static LOG_LEVEL: Once = Once::new();
     LOG_LEVEL.call_once(|| set_log_level_from_env_or(LogLevel::Error));
     let mut builder = NodeBuilder::new().signal_handling_mode(SignalHandlingMode::Disabled);
@@ -270,7 +283,7 @@ fn node(name: &str) -> Result<Node, ShmError> {
 }
 
 /// Removes what dead nodes (killed processes) left behind; logs what it did.
-fn cleanup_dead_nodes(node: &Node) {
+pub fn cleanup_dead_nodes(node: &Node) {
     let state = node.try_cleanup_dead_nodes();
     if state.cleanups > 0 || state.failed_cleanups > 0 {
         tracing::info!(
@@ -279,6 +292,36 @@ fn cleanup_dead_nodes(node: &Node) {
             "removed the shared memory of dead processes"
         );
     }
+}
+
+/// The ack service of one actor incarnation, named by [`Namespace::acks`]; the learner and the
+/// actor both open or create it, whichever comes first, with these settings.
+pub fn open_acks(node: &Node, name: &ServiceName) -> Result<AckService, ShmError> {
+    node.service_builder(name)
+        .publish_subscribe::<AckWire>()
+        .enable_safe_overflow(true)
+        .history_size(1)
+        .subscriber_max_buffer_size(4)
+        .subscriber_max_borrowed_samples(1)
+        .max_publishers(2)
+        .max_subscribers(2)
+        .max_nodes(4)
+        .open_or_create()
+        .map_err(|e| ShmError::iceoryx(format!("opening {name}"), e))
+}
+
+/// The event beside [`open_acks`]' service ("an ack is waiting"), opened or created the same way.
+pub fn open_ack_events(
+    node: &Node,
+    name: &ServiceName,
+) -> Result<event::PortFactory<Ipc>, ShmError> {
+    node.service_builder(name)
+        .event()
+        .max_notifiers(2)
+        .max_listeners(2)
+        .max_nodes(4)
+        .open_or_create()
+        .map_err(|e| ShmError::iceoryx(format!("opening the event {name}"), e))
 }
 
 #[cfg(test)]

@@ -13,8 +13,9 @@ pub const SHM_DIR: &str = "/dev/shm";
 const CHUNK_OVERHEAD: u64 = 256;
 const SEGMENT_OVERHEAD: u64 = 1 << 20;
 
-/// Bytes of a data segment of `chunks` chunks of `payload` bytes each.
-pub(super) fn segment_bytes(chunks: usize, payload: usize) -> u64 {
+/// Bytes of a data segment of `chunks` chunks of `payload` bytes each (for
+/// [`check_free_space`]).
+pub fn segment_bytes(chunks: usize, payload: usize) -> u64 {
     chunks as u64
         * (payload as u64)
             .next_multiple_of(64)

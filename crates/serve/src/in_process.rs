@@ -6,8 +6,7 @@ use std::time::Duration;
 use hac_learner::{IngestError, Learner, RegisterError, RoomError};
 use hac_proto::Published;
 use hac_proto::{Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot};
-
-use crate::{ActorLink, EvaluationOf, LinkError};
+use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
 
 /// Direct calls into a shared [`Learner`]: registration as is, each item ingested synchronously
 /// after waiting for room (the learner's backpressure), weights read from the learner's own
@@ -21,6 +20,7 @@ pub struct InProcess {
 }
 
 impl InProcess {
+    /// A link to `learner`; nothing is sent before [`register`](ActorLink::register).
     pub fn new(learner: Arc<Learner>) -> Self {
         Self {
             learner,
@@ -38,23 +38,7 @@ fn refused(e: IngestError) -> LinkError {
     }
 }
 
-impl ActorLink for InProcess {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        let admission = self
-            .learner
-            .register(registration.clone())
-            .map_err(|e| match e {
-                RegisterError::Finished => LinkError::Finished,
-                e => LinkError::Refused(e.to_string()),
-            })?;
-        self.actor_id = registration.actor_id.clone();
-        self.incarnation = admission.incarnation;
-        self.sequence = 0;
-        self.learner
-            .set_actor_transport(&self.actor_id, self.transport());
-        Ok(admission)
-    }
-
+impl IngestSink for InProcess {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         if self.incarnation == 0 {
             return Err(LinkError::Refused("send before register".into()));
@@ -79,13 +63,33 @@ impl ActorLink for InProcess {
     fn flush(&mut self, _timeout: Duration) -> Result<(), LinkError> {
         Ok(())
     }
+}
 
+impl WeightsSource for InProcess {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         self.learner.weights()
     }
 
     fn learner_version(&self) -> u64 {
         self.learner.weights().latest().map_or(0, |w| w.version)
+    }
+}
+
+impl ActorLink for InProcess {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        let admission = self
+            .learner
+            .register(registration.clone())
+            .map_err(|e| match e {
+                RegisterError::Finished => LinkError::Finished,
+                e => LinkError::Refused(e.to_string()),
+            })?;
+        self.actor_id = registration.actor_id.clone();
+        self.incarnation = admission.incarnation;
+        self.sequence = 0;
+        self.learner
+            .set_actor_transport(&self.actor_id, self.transport());
+        Ok(admission)
     }
 
     fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {

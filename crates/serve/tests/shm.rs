@@ -13,11 +13,11 @@ use hac_agent::RunConfig;
 use hac_core::Batch;
 use hac_learner::{Learner, LearnerOptions, RejectReason, WalOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, Registration};
-use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, serve};
-use hac_transport::shm::{
-    Namespace, Overflow, ShmLink, ShmLinkOptions, ShmMode, ShmServer, ShmServerOptions,
-};
-use hac_transport::{ActorLink, LinkError};
+use hac_serve::grpc::{ServerOptions, serve};
+use hac_serve::shm::{ShmServer, ShmServerOptions};
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
+use hac_transport::shm::{Namespace, Overflow, ShmLink, ShmLinkOptions, ShmMode};
+use hac_transport::{ActorLink, IngestSink, LinkError, WeightsSource};
 use tokio::sync::oneshot;
 
 const WAIT: Duration = Duration::from_secs(30);

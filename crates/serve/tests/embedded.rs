@@ -3,8 +3,8 @@
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use hac_actor::{EmbeddedRun, train_embedded};
 use hac_agent::{RoundReport, RunConfig};
+use hac_serve::{EmbeddedRun, train_embedded};
 
 fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunConfig {
     let mut agent = hac_envs::make(env).unwrap().default_config(2);

@@ -4,11 +4,11 @@
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
+use hac_actor::{ActorError, ActorOptions, ActorSummary, run_actor};
 use hac_agent::{Agent, RoundReport, RunConfig};
 use hac_learner::{BestWeights, Learner, LearnerOptions, LearnerStatus, StartError};
-use hac_transport::InProcess;
 
-use crate::{ActorError, ActorOptions, ActorSummary, run_actor};
+use crate::InProcess;
 
 /// Why an embedded run failed.
 #[derive(Debug, thiserror::Error)]

@@ -10,13 +10,15 @@ use hac_agent::RunConfig;
 use hac_core::Batch;
 use hac_learner::{Learner, LearnerOptions, RejectReason};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, Registration, pb};
+use hac_serve::grpc::{ServerOptions, serve};
+use hac_serve::metrics::learner_metrics;
 use hac_transport::grpc::{
-    ActorNodeStatus, GrpcLink, GrpcLinkOptions, Health, STATUS_SERVICE, ServerOptions,
-    ServerSecurity, StatusSource, reject_reason, serve, serve_status,
+    ActorNodeStatus, GrpcLink, GrpcLinkOptions, Health, STATUS_SERVICE, ServerSecurity,
+    StatusSource, reject_reason, serve_status,
 };
-use hac_transport::metrics::{learner_metrics, serve_metrics};
+use hac_transport::metrics::serve_metrics;
 use hac_transport::security::{BearerToken, ClientTls, ServerTls, Token, endpoint};
-use hac_transport::{ActorLink, LinkError};
+use hac_transport::{ActorLink, IngestSink, LinkError};
 use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
 use tokio::sync::oneshot;
 use tonic::Code;

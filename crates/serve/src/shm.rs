@@ -1,4 +1,5 @@
-//! [`ShmServer`]: the learner's side of shared memory, beside `grpc::serve`.
+//! [`ShmServer`]: the learner's side of shared memory (see [`hac_transport::shm`] for the
+//! services, the delivery rules and the actor's side), beside [`grpc::serve`](crate::grpc::serve).
 //!
 //! Two threads. *Ingest* waits for room in the learner (backpressure: nothing is read meanwhile,
 //! so actors' windows fill and they block), takes the next packed message from the `ingest`
@@ -8,7 +9,7 @@
 //! sleeps on the `ingest` event, and every few seconds it removes dead nodes and the ack services
 //! nobody listens to any more, and logs the summary of refusals not logged one by one (a
 //! `RefusalLog`). *Weights* waits for each new snapshot in the learner's
-//! [`Published`](hac_proto::Published) cell and publishes it packed, with history 1. With a
+//! [`Published`] cell and publishes it packed, with history 1. With a
 //! write-ahead log, a third thread, *commits*, signals the `ingest` event after each commit of
 //! the log, so that durability advancing reaches the actors at once, without new messages.
 
@@ -24,6 +25,11 @@ use hac_proto::{
     Clipped, PACKED_ALIGNMENT, Published, ShmOffer, WeightsSnapshot, pack_weights,
     packed_weights_len, unpack_ingest,
 };
+use hac_transport::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
+use hac_transport::shm::{
+    Ack, AckService, AckWire, Ipc, Namespace, Node, SHM_DIR, ShmError, TRANSPORT, check_free_space,
+    cleanup_dead_nodes, host_identity, node, open_ack_events, open_acks, segment_bytes,
+};
 use iceoryx2::port::ReceiveError;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -32,10 +38,6 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::update_connections::UpdateConnections as _;
 use iceoryx2::prelude::{Alignment, AllocationStrategy, PortFactory as _};
 use iceoryx2::service::port_factory::{event, publish_subscribe};
-
-use super::space::segment_bytes;
-use super::{Ack, AckWire, Ipc, Namespace, Node, ShmError, check_free_space, cleanup_dead_nodes};
-use crate::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
 
 /// How the learner serves shared memory.
 #[derive(Debug, Clone, PartialEq)]
@@ -53,7 +55,7 @@ impl Default for ShmServerOptions {
         Self {
             max_actors: 32,
             window: 32,
-            shm_dir: PathBuf::from(super::SHM_DIR),
+            shm_dir: PathBuf::from(SHM_DIR),
         }
     }
 }
@@ -73,7 +75,6 @@ const WEIGHTS_WAIT: Duration = Duration::from_millis(50);
 const COMMIT_WAIT: Duration = Duration::from_millis(100);
 
 type IngestService = publish_subscribe::PortFactory<Ipc, [u8], ()>;
-type AckService = publish_subscribe::PortFactory<Ipc, AckWire, ()>;
 
 /// The learner's shared-memory server: serves `hac/<namespace>/...` until stopped or dropped.
 #[derive(Debug)]
@@ -97,14 +98,14 @@ impl ShmServer {
                 "--shm-max-actors and --shm-window must be at least 1",
             ));
         }
-        let host = super::host_identity();
+        let host = host_identity();
         if host.is_empty() {
             return Err(ShmError::iceoryx(
                 "identifying this host",
                 "/proc/sys/kernel/random/boot_id is unreadable",
             ));
         }
-        let node = super::node(&format!("hac-learner-{}", namespace.as_str()))?;
+        let node = node(&format!("hac-learner-{}", namespace.as_str()))?;
         cleanup_dead_nodes(&node);
 
         let snapshot = learner
@@ -345,38 +346,6 @@ impl AckPort {
     }
 }
 
-/// The ack service of one actor incarnation; the learner and the actor both open or create it,
-/// whichever comes first, with these settings.
-pub(super) fn open_acks(
-    node: &Node,
-    name: &iceoryx2::prelude::ServiceName,
-) -> Result<AckService, ShmError> {
-    node.service_builder(name)
-        .publish_subscribe::<AckWire>()
-        .enable_safe_overflow(true)
-        .history_size(1)
-        .subscriber_max_buffer_size(4)
-        .subscriber_max_borrowed_samples(1)
-        .max_publishers(2)
-        .max_subscribers(2)
-        .max_nodes(4)
-        .open_or_create()
-        .map_err(|e| ShmError::iceoryx(format!("opening {name}"), e))
-}
-
-pub(super) fn open_ack_events(
-    node: &Node,
-    name: &iceoryx2::prelude::ServiceName,
-) -> Result<event::PortFactory<Ipc>, ShmError> {
-    node.service_builder(name)
-        .event()
-        .max_notifiers(2)
-        .max_listeners(2)
-        .max_nodes(4)
-        .open_or_create()
-        .map_err(|e| ShmError::iceoryx(format!("opening the event {name}"), e))
-}
-
 struct Ingest {
     learner: Arc<Learner>,
     namespace: Namespace,
@@ -498,8 +467,7 @@ impl Ingest {
         match self.learner.ingest_ref(&msg) {
             Ok(_) => {
                 if !port.transport_noted {
-                    self.learner
-                        .set_actor_transport(msg.actor_id, super::TRANSPORT);
+                    self.learner.set_actor_transport(msg.actor_id, TRANSPORT);
                     port.transport_noted = true;
                 }
                 port.acked_through = port.acked_through.max(msg.sequence);

@@ -25,17 +25,17 @@ use hac_proto::{
     ShmOffer, WeightsWatch, WireError, check_actor_id, decode_ingest, pb,
 };
 use hac_proto::{Published, RejectReason};
+use hac_transport::grpc::{
+    Health, LEARNER_SERVICE, OnMalformed, RefuseUndecodable, STATUS_SERVICE, ServerSecurity,
+    StatusGrpc, refusal_status, router, serve_router, until_set,
+};
+use hac_transport::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::metadata::MetadataValue;
 use tonic::{Code, Request, Response, Status, Streaming};
 
-use super::malformed::{OnMalformed, RefuseUndecodable};
-use super::ops::{Health, LEARNER_SERVICE, STATUS_SERVICE, ServerSecurity, router, serve_router};
-use super::status::StatusGrpc;
-use super::{REJECT_REASON_KEY, until_set};
-use crate::refusal_log::{RefusalLog, SUMMARY_INTERVAL};
+use super::status::LearnerSource;
 
 /// Transport settings of the learner's gRPC server.
 #[derive(Debug, Clone)]
@@ -83,6 +83,7 @@ pub struct LearnerGrpc {
 }
 
 impl LearnerGrpc {
+    /// Serves `learner`, with no shared memory offered.
     pub fn new(learner: Arc<Learner>) -> Self {
         Self {
             learner,
@@ -169,7 +170,10 @@ pub async fn serve(
     let service = LearnerGrpc::new(learner.clone()).with_shm_offer(options.shm_offer.clone());
     let health = Health::new(LEARNER_SERVICE).await;
     let on_malformed = service.on_malformed();
-    let status = StatusGrpc::new(learner.clone(), service.closing.subscribe());
+    let status = StatusGrpc::new(
+        Arc::new(LearnerSource(learner.clone())),
+        service.closing.subscribe(),
+    );
     let counter = learner.clone();
     let on_refused: Arc<dyn Fn() + Send + Sync> =
         Arc::new(move || counter.count_rejection(RejectReason::Unauthenticated));
@@ -242,7 +246,7 @@ pub async fn serve(
 
 /// A refusal before it becomes a [`Status`]: the only place that picks status codes.
 #[derive(Debug)]
-pub(super) struct Refusal {
+struct Refusal {
     reason: RejectReason,
     code: Code,
     message: String,
@@ -296,8 +300,9 @@ impl From<RegisterError> for Refusal {
     }
 }
 
-/// The refusal of bytes that do not decode as the expected message, on every RPC.
-pub(super) fn malformed(message: String) -> Refusal {
+/// The refusal of bytes that do not decode as the expected message (as
+/// [`RefuseUndecodable`] answers on every other RPC).
+fn malformed(message: String) -> Refusal {
     Refusal {
         reason: RejectReason::Malformed,
         code: Code::InvalidArgument,
@@ -307,12 +312,7 @@ pub(super) fn malformed(message: String) -> Refusal {
 
 impl From<Refusal> for Status {
     fn from(refusal: Refusal) -> Self {
-        let mut status = Status::new(refusal.code, refusal.message);
-        status.metadata_mut().insert(
-            REJECT_REASON_KEY,
-            MetadataValue::from_static(refusal.reason.name()),
-        );
-        status
+        refusal_status(refusal.reason, refusal.code, refusal.message)
     }
 }
 
@@ -547,7 +547,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
         let wants_shm = registration
             .transports
             .iter()
-            .any(|t| t == crate::shm::TRANSPORT);
+            .any(|t| t == hac_transport::shm::TRANSPORT);
         let mut admission = self
             .learner
             .register_again(registration, previous)

@@ -12,8 +12,10 @@ use hac_actor::{ActorOptions, run_actor};
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions, Published};
 use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, serve};
-use hac_transport::{ActorLink, EvaluationOf, InProcess, LinkError, LinkStats};
+use hac_serve::InProcess;
+use hac_serve::grpc::{ServerOptions, serve};
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
+use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
 
 fn learner(episodes_in_flight: u32) -> Arc<Learner> {
     let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
@@ -79,11 +81,7 @@ struct FirstTurnFromAnotherLearner {
     stale_turns: u32,
 }
 
-impl ActorLink for FirstTurnFromAnotherLearner {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        self.inner.register(registration)
-    }
-
+impl IngestSink for FirstTurnFromAnotherLearner {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         self.inner.send(item)
     }
@@ -91,13 +89,21 @@ impl ActorLink for FirstTurnFromAnotherLearner {
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
         self.inner.flush(timeout)
     }
+}
 
+impl WeightsSource for FirstTurnFromAnotherLearner {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         self.inner.weights()
     }
 
     fn learner_version(&self) -> u64 {
         self.inner.learner_version()
+    }
+}
+
+impl ActorLink for FirstTurnFromAnotherLearner {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.inner.register(registration)
     }
 
     fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
@@ -142,11 +148,7 @@ struct SupersededOnce {
 
 const WAIT: Duration = Duration::from_secs(30);
 
-impl ActorLink for SupersededOnce {
-    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
-        self.inner.register(registration)
-    }
-
+impl IngestSink for SupersededOnce {
     fn send(&mut self, item: IngestItem) -> Result<(), LinkError> {
         self.inner.send(item)?;
         self.sent += 1;
@@ -173,13 +175,21 @@ impl ActorLink for SupersededOnce {
     fn flush(&mut self, timeout: Duration) -> Result<(), LinkError> {
         self.inner.flush(timeout)
     }
+}
 
+impl WeightsSource for SupersededOnce {
     fn weights(&self) -> &Published<WeightsSnapshot> {
         self.inner.weights()
     }
 
     fn learner_version(&self) -> u64 {
         self.inner.learner_version()
+    }
+}
+
+impl ActorLink for SupersededOnce {
+    fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError> {
+        self.inner.register(registration)
     }
 
     fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {

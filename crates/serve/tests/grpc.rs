@@ -12,8 +12,9 @@ use hac_learner::{Learner, LearnerOptions, RejectReason};
 use hac_proto::{
     ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb,
 };
-use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, ServerOptions, reject_reason, serve};
-use hac_transport::{ActorLink, EvaluationOf, LinkError};
+use hac_serve::grpc::{ServerOptions, serve};
+use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, reject_reason};
+use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
 use prost::Message as _;
 use prost::bytes::BufMut as _;
 use tokio::sync::{mpsc, oneshot};
