@@ -37,12 +37,24 @@ pub struct EmbeddedRun {
 /// levels training in parallel on their own threads. Results depend only on the config and
 /// seed. Calls `on_round` after each test round; stops at `run.episodes`, when a round reaches
 /// `run.stop_at`, or (between episodes, without a last test round) when `interrupt` is set.
+/// The learner runs with [`LearnerOptions::for_run`]; see [`train_embedded_with`].
 pub fn train_embedded(
     run: &RunConfig,
     interrupt: &AtomicBool,
+    on_round: impl FnMut(&RoundReport),
+) -> Result<EmbeddedRun, EmbeddedError> {
+    train_embedded_with(run, LearnerOptions::for_run(run), interrupt, on_round)
+}
+
+/// [`train_embedded`] with the learner's `options` (its thread budget, say: the weights, and so
+/// the run, do not depend on it).
+pub fn train_embedded_with(
+    run: &RunConfig,
+    options: LearnerOptions,
+    interrupt: &AtomicBool,
     mut on_round: impl FnMut(&RoundReport),
 ) -> Result<EmbeddedRun, EmbeddedError> {
-    let learner = Arc::new(Learner::start(run.clone(), LearnerOptions::for_run(run))?);
+    let learner = Arc::new(Learner::start(run.clone(), options)?);
     let mut link = InProcess::new(learner.clone());
     let options = ActorOptions {
         lockstep: true,

@@ -18,5 +18,5 @@ mod in_process;
 pub mod metrics;
 pub mod shm;
 
-pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded};
+pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded, train_embedded_with};
 pub use in_process::InProcess;

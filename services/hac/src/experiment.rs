@@ -20,7 +20,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use hac_agent::RoundReport;
 use hac_core::hiro::Algo;
-use hac_serve::train_embedded;
+use hac_learner::{LearnerOptions, MAX_LEARNER_THREADS, available_threads};
+use hac_serve::train_embedded_with;
 
 use crate::config::{self, RunConfig};
 use crate::plot;
@@ -37,6 +38,8 @@ pub struct Grid {
     pub episodes: Option<u64>,
     pub max_actions: Option<usize>,
     pub jobs: usize,
+    /// Each run's learner threads; `None`: the cores available divided among the jobs.
+    pub learner_threads: Option<usize>,
     pub out: PathBuf,
     pub config: Option<PathBuf>,
     pub set: Vec<String>,
@@ -75,6 +78,13 @@ pub fn run(grid: Grid) -> Result<()> {
     if grid.jobs == 0 {
         bail!("invalid value for `--jobs`: must be at least 1");
     }
+    let learner_threads = match grid.learner_threads {
+        Some(n) if n == 0 || n > MAX_LEARNER_THREADS => bail!(
+            "invalid value for `--learner-threads`: must be 1 to {MAX_LEARNER_THREADS}, got {n}"
+        ),
+        Some(n) => n,
+        None => (available_threads() / grid.jobs).max(1),
+    };
     // Resolve (and so validate) every run's configuration before starting any.
     let mut runs = Vec::new();
     for env in &grid.envs {
@@ -114,7 +124,8 @@ pub fn run(grid: Grid) -> Result<()> {
     std::fs::create_dir_all(&grid.out)
         .with_context(|| format!("creating {}", grid.out.display()))?;
     println!(
-        "experiment: {} x {} with levels {:?} x {} seeds = {} runs, {} at a time; writing {}",
+        "experiment: {} x {} with levels {:?} x {} seeds = {} runs, {} at a time ({} learner \
+         threads each); writing {}",
         grid.envs.join(","),
         grid.algos
             .iter()
@@ -125,6 +136,7 @@ pub fn run(grid: Grid) -> Result<()> {
         grid.seeds,
         runs.len(),
         grid.jobs.min(runs.len()),
+        learner_threads,
         grid.out.display()
     );
 
@@ -141,7 +153,7 @@ pub fn run(grid: Grid) -> Result<()> {
                     if grid.interrupt.load(Ordering::Relaxed) {
                         break;
                     }
-                    let result = run_one(config, &grid.out, &grid.interrupt);
+                    let result = run_one(config, &grid.out, learner_threads, &grid.interrupt);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
                     match &result {
                         Ok(f) => println!(
@@ -214,7 +226,12 @@ fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
     out.join(config.run_name())
 }
 
-fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Finished> {
+fn run_one(
+    config: &RunConfig,
+    out: &Path,
+    learner_threads: usize,
+    interrupt: &AtomicBool,
+) -> Result<Finished> {
     // Existing runs were refused (unless --overwrite) before any run started.
     let mut dir = RunDir::create(&run_path(out, config), config, true)?;
     if tabular_cmd::handles(&config.env) {
@@ -227,7 +244,9 @@ fn run_one(config: &RunConfig, out: &Path, interrupt: &AtomicBool) -> Result<Fin
     }
     let started = Instant::now();
     let mut write_error = None;
-    let trained = train_embedded(config, interrupt, |report| {
+    let mut options = LearnerOptions::for_run(config);
+    options.learner_threads = learner_threads;
+    let trained = train_embedded_with(config, options, interrupt, |report| {
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }

@@ -44,8 +44,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use hac_agent::{Agent, RoundReport};
+use hac_learner::LearnerOptions;
 use hac_run::daemon::{self, ConfigFile, Mount};
-use hac_serve::train_embedded;
+use hac_serve::train_embedded_with;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -283,9 +284,13 @@ struct ExperimentArgs {
     /// Episode budget of every run, as for `hac train` [default: the environment's].
     #[arg(long)]
     max_actions: Option<usize>,
-    /// Runs at a time (each run uses one thread).
+    /// Runs at a time.
     #[arg(long, default_value_t = 2)]
     jobs: usize,
+    /// Each run's learner threads (see `hac train --learner-threads`) [default: the cores
+    /// available divided among the jobs, at least 1]. Results do not depend on it.
+    #[arg(long)]
+    learner_threads: Option<usize>,
     /// Output directory [default: runs/experiment-<env>].
     #[arg(long)]
     out: Option<PathBuf>,
@@ -381,6 +386,11 @@ struct TrainArgs {
     /// Replace a run already in the run directory.
     #[arg(long)]
     overwrite: bool,
+    /// Threads updating the networks, shared among the levels, which update in parallel
+    /// [default: the cores available]. The weights, and so the run, do not depend on it; size
+    /// it with `hac bench update`.
+    #[arg(long, env = "HAC_LEARNER_THREADS")]
+    learner_threads: Option<usize>,
 }
 
 #[derive(Debug, Args)]
@@ -460,6 +470,7 @@ fn main() {
                 episodes: args.episodes,
                 max_actions: args.max_actions,
                 jobs: args.jobs,
+                learner_threads: args.learner_threads,
                 config: args.config,
                 set: args.set,
                 overwrite: args.overwrite,
@@ -576,6 +587,12 @@ fn train(args: TrainArgs) -> Result<()> {
         print!("{}", toml::to_string(&run)?);
         return Ok(());
     }
+    // Checked before the run directory is made.
+    let mut options = LearnerOptions::for_run(&run);
+    if let Some(threads) = args.learner_threads {
+        options.learner_threads = threads;
+        options.validate()?;
+    }
     let out = args
         .out
         .unwrap_or_else(|| PathBuf::from("runs").join(run.run_name()));
@@ -587,7 +604,7 @@ fn train(args: TrainArgs) -> Result<()> {
     println!("{}", run_dir::training_banner(&run, &out, None));
     let started = Instant::now();
     let mut write_error = None;
-    let trained = train_embedded(&run, &interrupt, |report: &RoundReport| {
+    let trained = train_embedded_with(&run, options, &interrupt, |report: &RoundReport| {
         println!("{}", schedule::progress_line(report));
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);

@@ -284,3 +284,44 @@ fn key_lists_and_docs_are_in_step_with_the_flags() {
     }
     in_step(&docs_path, &docs);
 }
+
+/// `hac train` and `hac experiment` take the learner's thread budget; a bad one is refused by
+/// name before any run directory is made.
+#[test]
+fn train_and_experiment_refuse_a_bad_learner_thread_budget() {
+    let scratch = Scratch::new("learner-threads");
+    let out = scratch.0.join("run");
+    let out = out.to_str().unwrap();
+    let cases: [(&[&str], &[(&str, &str)], &str); 3] = [
+        (
+            &["train", "--learner-threads", "0", "--out", out],
+            &[],
+            "invalid value for `learner_threads`: must be 1 to 1024, got 0",
+        ),
+        (
+            &["train", "--out", out],
+            &[("HAC_LEARNER_THREADS", "1025")],
+            "invalid value for `learner_threads`: must be 1 to 1024, got 1025",
+        ),
+        (
+            &[
+                "experiment",
+                "--env",
+                "pendulum",
+                "--learner-threads",
+                "0",
+                "--out",
+                out,
+            ],
+            &[],
+            "invalid value for `--learner-threads`: must be 1 to 1024, got 0",
+        ),
+    ];
+    for (args, env, expected) in cases {
+        let output = hac(args, env);
+        let stderr = text(&output.stderr);
+        assert!(!output.status.success(), "{args:?} {env:?} succeeded");
+        assert!(stderr.contains(expected), "{args:?} {env:?}: {stderr}");
+        assert!(!Path::new(out).exists(), "{args:?} {env:?} made {out}");
+    }
+}

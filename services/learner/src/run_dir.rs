@@ -5,6 +5,7 @@
 //! ingest counts to the usual headline figures:
 //!
 //! - `episodes_ingested`: training episodes ingested (all actors; may exceed the budget by a few);
+//!   `env_steps_ingested`: the primitive actions their summaries reported;
 //! - `messages`: ingest messages that reached the learner core, valid or not: `messages = batches
 //!   + episodes_ingested + duplicates + rejected`, counting the rejections other than
 //!   `malformed`, `oversized` and `unauthenticated` (those the transport refuses first);
@@ -57,6 +58,7 @@ pub fn finish(dir: &RunDir, run: &FinishedRun, wall_time_s: f64) -> Result<Summa
         .collect();
     let extra = json!({
         "episodes_ingested": status.episodes,
+        "env_steps_ingested": status.env_steps,
         "messages": status.messages,
         "batches": status.batches,
         "transitions": status.transitions,
