@@ -23,6 +23,7 @@ pub fn learner_metrics(learner: &Learner) -> String {
         &[
             ("env", &run.env),
             ("levels", &levels),
+            ("algo", run.algo.name()),
             ("run_config_digest", &status.run_config_digest),
         ],
         1.0,

@@ -204,6 +204,7 @@ fn status_reports_what_was_ingested_and_a_watch_streams_it() {
         );
         assert_eq!(status.state, "serving");
         assert_eq!((status.env.as_str(), status.levels), ("mountain-car", 2));
+        assert_eq!(status.algo, "hac");
         assert_eq!((status.batches, status.episodes), (6, 3));
         assert_eq!(status.transitions, 3 * (64 + 16));
         assert_eq!(status.env_steps, 30);

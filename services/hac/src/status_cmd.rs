@@ -252,10 +252,11 @@ fn learner_table(s: &pb::LearnerStatus) -> String {
     let digest: String = s.run_config_digest.chars().take(12).collect();
     let _ = writeln!(
         out,
-        "learner  {}  env {}  levels {}  seed {}  run {digest}  uptime {}",
+        "learner  {}  env {}  levels {}  algo {}  seed {}  run {digest}  uptime {}",
         s.state,
         s.env,
         s.levels,
+        if s.algo.is_empty() { "hac" } else { &s.algo },
         s.seed,
         duration(s.uptime_seconds)
     );
@@ -567,7 +568,7 @@ mod tests {
         };
         let text = learner_table(&status);
         for expected in [
-            "learner  serving  env pendulum  levels 2",
+            "learner  serving  env pendulum  levels 2  algo hac  seed 0",
             "run 0123456789ab ",
             "episodes 10/100 (success 50.0%)",
             "30/60",

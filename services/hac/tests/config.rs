@@ -292,7 +292,9 @@ fn train_and_experiment_refuse_a_bad_learner_thread_budget() {
     let scratch = Scratch::new("learner-threads");
     let out = scratch.0.join("run");
     let out = out.to_str().unwrap();
-    let cases: [(&[&str], &[(&str, &str)], &str); 3] = [
+    // Arguments, variables, the error expected.
+    type Refusal<'a> = (&'a [&'a str], &'a [(&'a str, &'a str)], &'a str);
+    let cases: [Refusal; 3] = [
         (
             &["train", "--learner-threads", "0", "--out", out],
             &[],

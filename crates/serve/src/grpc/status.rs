@@ -48,6 +48,7 @@ pub fn learner_status(
         run_config_digest: status.run_config_digest.clone(),
         env: run.env.clone(),
         levels: run.levels as u32,
+        algo: run.algo.name().into(),
         seed: run.seed,
         episode_budget: run.episodes,
         uptime_seconds: status.uptime.as_secs_f64(),
