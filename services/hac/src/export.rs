@@ -183,6 +183,7 @@ fn policy(source: &Source) -> Result<ExportedPolicy> {
         meta.insert(key.to_string(), value);
     };
     put("env", run.env.clone());
+    put("algo", run.algo.name().into());
     put("seed", run.seed.to_string());
     put("source", source.description.clone());
     if let Some(version) = source.weights_version {
@@ -198,16 +199,32 @@ fn policy(source: &Source) -> Result<ExportedPolicy> {
     put("subgoal_low", list(&spec.subgoal_bounds.low));
     put("subgoal_high", list(&spec.subgoal_bounds.high));
     put("subgoal_thresholds", list(&spec.subgoal_thresholds));
-    put("horizon", run.agent.horizon.to_string());
+    // HIRO's high level proposes a goal relative to the projected state every c steps; HAC's
+    // levels get H attempts each.
+    let relative_goals = run.hiro().map(|h| {
+        put("hiro.c", h.c.to_string());
+        let r = hac_core::hiro::goal_radius(spec);
+        let low: Vec<f32> = r.iter().map(|r| -r).collect();
+        (low, r)
+    });
+    if relative_goals.is_none() {
+        put("horizon", run.agent.horizon.to_string());
+    }
     put("max_actions", spec.max_actions.to_string());
     put("activation", "relu".into());
     put("output", "tanh(y) * output_scale + output_offset".into());
     for (level, actor) in source.actors.iter().enumerate() {
         let dims = actor.dims();
-        let bounds = spec.level_action_bounds(level);
+        let (low, high) = match &relative_goals {
+            Some((low, high)) if level > 0 => (low.as_slice(), high.as_slice()),
+            _ => {
+                let bounds = spec.level_action_bounds(level);
+                (bounds.low.as_slice(), bounds.high.as_slice())
+            }
+        };
         put(&format!("level{level}.action_dim"), dims.action.to_string());
-        put(&format!("level{level}.action_low"), list(&bounds.low));
-        put(&format!("level{level}.action_high"), list(&bounds.high));
+        put(&format!("level{level}.action_low"), list(low));
+        put(&format!("level{level}.action_high"), list(high));
         if let Some(updates) = &source.updates {
             put(&format!("level{level}.updates"), updates[level].to_string());
         }

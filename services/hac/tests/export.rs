@@ -87,9 +87,11 @@ fn act(level: &Level, state: &[f32], goal: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-fn train(out: &Path) {
-    let o = hac(&[
+fn train(out: &Path, algo: &str) {
+    let mut args = vec![
         "train",
+        "--algo",
+        algo,
         "--env",
         "pendulum",
         "--levels",
@@ -102,15 +104,31 @@ fn train(out: &Path) {
         "exploration_episodes=10",
         "--out",
         out.to_str().unwrap(),
-    ]);
+    ];
+    if algo == "hiro" {
+        // A few updates are enough to export.
+        args.extend(["--set", "hiro.updates_per_step=0.01"]);
+    }
+    let o = hac(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
 #[test]
 fn an_exported_policy_reproduces_the_runs_actions_without_this_project() {
-    let dir = scratch("pendulum");
+    exported_policy_reproduces("hac");
+}
+
+/// HIRO's high level outputs relative goals: its bounds are the relative-goal box, and the file
+/// says it is HIRO's, with its c.
+#[test]
+fn an_exported_hiro_policy_reproduces_the_runs_actions_and_names_its_goals() {
+    exported_policy_reproduces("hiro");
+}
+
+fn exported_policy_reproduces(algo: &str) {
+    let dir = scratch(&format!("pendulum-{algo}"));
     let run = dir.join("run");
-    train(&run);
+    train(&run, algo);
     let file = dir.join("policy.safetensors");
     let o = hac(&[
         "export",
@@ -128,8 +146,22 @@ fn an_exported_policy_reproduces_the_runs_actions_without_this_project() {
     let meta: HashMap<String, String> = header.metadata().clone().unwrap();
     assert_eq!(meta["format"], "hac/policy");
     assert_eq!(meta["env"], "pendulum");
+    assert_eq!(meta["algo"], algo);
     let levels: usize = meta["levels"].parse().unwrap();
     assert_eq!(levels, 2);
+    let spec = hac_envs::make("pendulum").unwrap().spec().clone();
+    if algo == "hiro" {
+        assert_eq!(meta["hiro.c"], "10");
+        assert!(!meta.contains_key("horizon"));
+        let r = hac_core::hiro::goal_radius(&spec);
+        let high: Vec<f32> = meta["level1.action_high"]
+            .split(',')
+            .map(|v| v.parse().unwrap())
+            .collect();
+        assert_eq!(high, r);
+    } else {
+        assert!(meta.contains_key("horizon") && !meta.contains_key("hiro.c"));
+    }
 
     // The run's own networks, through the project's code.
     let config = RunConfig::load_run(&run).unwrap();
