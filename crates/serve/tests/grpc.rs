@@ -2,16 +2,17 @@
 //! exactly-once storage across resends, the weights watch, and a [`GrpcLink`] that survives a
 //! learner restart.
 
+mod common;
+
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use common::{batch_item, episode, link_options, localhost, run_config};
+
 use hac_agent::RunConfig;
-use hac_core::Batch;
 use hac_learner::{Learner, LearnerOptions, RejectReason};
-use hac_proto::{
-    ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb,
-};
+use hac_proto::{ActorRole, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb};
 use hac_serve::grpc::{ServerOptions, serve};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, reject_reason};
 use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
@@ -25,25 +26,6 @@ use tonic::transport::Channel;
 use tonic::{Code, Status, Streaming};
 
 const WAIT: Duration = Duration::from_secs(20);
-
-fn run_config() -> RunConfig {
-    let mut agent = hac_envs::make("mountain-car").unwrap().default_config(2);
-    agent.test_episodes = 2;
-    RunConfig {
-        env: "mountain-car".into(),
-        levels: 2,
-        seed: 0,
-        episodes: 1000,
-        stop_at: None,
-        replay_shards: 2,
-        max_actions: None,
-        subgoal_bounds: None,
-        agent,
-        tabular: None,
-        hiro: None,
-        algo: Default::default(),
-    }
-}
 
 fn start_learner(seed: u64) -> Arc<Learner> {
     let run = RunConfig {
@@ -129,17 +111,6 @@ async fn register(
         .incarnation
 }
 
-/// A valid batch of `len` transitions for `level`.
-fn batch_item(learner: &Learner, level: usize, len: usize) -> IngestItem {
-    let mut batch = Batch::zeros(learner.dims()[level], len);
-    batch.rewards.fill(-1.0);
-    IngestItem::Batch(DecodedBatch {
-        level,
-        weights_version: 1,
-        batch,
-    })
-}
-
 fn request(actor_id: &str, incarnation: u64, sequence: u64, item: IngestItem) -> pb::IngestRequest {
     IngestMessage {
         actor_id: actor_id.into(),
@@ -148,14 +119,6 @@ fn request(actor_id: &str, incarnation: u64, sequence: u64, item: IngestItem) ->
         item,
     }
     .into()
-}
-
-fn episode() -> IngestItem {
-    IngestItem::Episode {
-        env_steps: 10,
-        success: false,
-        weights_version: 1,
-    }
 }
 
 /// An open ingest stream: requests in, acks out.
@@ -592,20 +555,6 @@ async fn next_weights(stream: &mut Streaming<pb::Weights>) -> WeightsSnapshot {
         .expect("a healthy stream")
         .expect("an open stream");
     WeightsSnapshot::try_from(msg).expect("valid weights")
-}
-
-fn localhost() -> SocketAddr {
-    ([127, 0, 0, 1], 0).into()
-}
-
-fn link_options() -> GrpcLinkOptions {
-    GrpcLinkOptions {
-        backoff_min: Duration::from_millis(20),
-        backoff_max: Duration::from_millis(200),
-        give_up_after: Duration::from_secs(30),
-        jitter_seed: 7,
-        ..GrpcLinkOptions::default()
-    }
 }
 
 /// A server runtime for tests that use the blocking [`GrpcLink`] from the test thread.

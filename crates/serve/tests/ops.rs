@@ -2,14 +2,16 @@
 //! watched), health through a run's end, reflection, Prometheus metrics, the bearer token on
 //! every service but health, TLS, and the per-actor message rate limit.
 
+mod common;
+
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use hac_agent::RunConfig;
-use hac_core::Batch;
+use common::{batch_item, episode, link_options, run_config, runtime};
+
 use hac_learner::{Learner, LearnerOptions, RejectReason};
-use hac_proto::{ActorRole, DecodedBatch, IngestItem, Registration, pb};
+use hac_proto::{ActorRole, Registration, pb};
 use hac_serve::grpc::{ServerOptions, serve};
 use hac_serve::metrics::learner_metrics;
 use hac_transport::grpc::{
@@ -33,38 +35,11 @@ use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
 
 const WAIT: Duration = Duration::from_secs(20);
 
-fn run_config() -> RunConfig {
-    let mut agent = hac_envs::make("mountain-car").unwrap().default_config(2);
-    agent.test_episodes = 2;
-    RunConfig {
-        env: "mountain-car".into(),
-        levels: 2,
-        seed: 0,
-        episodes: 1000,
-        stop_at: None,
-        replay_shards: 2,
-        max_actions: None,
-        subgoal_bounds: None,
-        agent,
-        tabular: None,
-        hiro: None,
-        algo: Default::default(),
-    }
-}
-
 fn start_learner(options: impl FnOnce(&mut LearnerOptions)) -> Arc<Learner> {
     let run = run_config();
     let mut learner_options = LearnerOptions::for_run(&run);
     options(&mut learner_options);
     Arc::new(Learner::start(run, learner_options).unwrap())
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap()
 }
 
 /// A learner server on an ephemeral loopback port.
@@ -107,40 +82,12 @@ async fn channel(url: &str, tls: Option<&ClientTls>, token: Option<&Token>) -> A
     InterceptedService::new(channel, BearerToken(token.cloned()))
 }
 
-fn link_options() -> GrpcLinkOptions {
-    GrpcLinkOptions {
-        backoff_min: Duration::from_millis(20),
-        backoff_max: Duration::from_millis(200),
-        give_up_after: Duration::from_secs(30),
-        jitter_seed: 7,
-        ..GrpcLinkOptions::default()
-    }
-}
-
 fn registration(actor_id: &str) -> Registration {
     Registration {
         actor_id: actor_id.into(),
         role: ActorRole::Trainer,
         hostname: "test".into(),
         transports: vec!["grpc".into()],
-    }
-}
-
-fn batch_item(learner: &Learner, level: usize, len: usize) -> IngestItem {
-    let mut batch = Batch::zeros(learner.dims()[level], len);
-    batch.rewards.fill(-1.0);
-    IngestItem::Batch(DecodedBatch {
-        level,
-        weights_version: 1,
-        batch,
-    })
-}
-
-fn episode() -> IngestItem {
-    IngestItem::Episode {
-        env_steps: 10,
-        success: false,
-        weights_version: 1,
     }
 }
 

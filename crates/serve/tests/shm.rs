@@ -4,10 +4,14 @@
 //! learner restart, messages held until durable and resent to a learner resumed from its
 //! write-ahead log, and the fallback to gRPC.
 
+mod common;
+
 use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
+
+use common::{episode, localhost, runtime};
 
 use hac_agent::RunConfig;
 use hac_core::Batch;
@@ -123,18 +127,6 @@ impl Served {
     }
 }
 
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
-fn localhost() -> SocketAddr {
-    ([127, 0, 0, 1], 0).into()
-}
-
 fn grpc_options() -> GrpcLinkOptions {
     GrpcLinkOptions {
         backoff_min: Duration::from_millis(20),
@@ -175,14 +167,6 @@ fn batch_item(learner: &Learner, level: usize, len: usize, mark: f32) -> IngestI
         weights_version: 1,
         batch,
     })
-}
-
-fn episode() -> IngestItem {
-    IngestItem::Episode {
-        env_steps: 10,
-        success: false,
-        weights_version: 1,
-    }
 }
 
 fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
