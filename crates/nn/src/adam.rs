@@ -2,6 +2,7 @@
 
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
+use crate::kernels::vectorized;
 
 /// Decay of the first-moment estimate.
 pub const BETA1: f32 = 0.9;
@@ -75,11 +76,17 @@ impl Adam {
         for ((p, g), (m, v)) in tensors.into_iter().zip(&mut self.moments) {
             debug_assert_eq!(p.len(), g.len());
             debug_assert_eq!(p.len(), m.len());
-            for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
-                *m = BETA1 * *m + (1.0 - BETA1) * g;
-                *v = BETA2 * *v + (1.0 - BETA2) * g * g;
-                *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + EPSILON);
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut())
+                    {
+                        *m = BETA1 * *m + (1.0 - BETA1) * g;
+                        *v = BETA2 * *v + (1.0 - BETA2) * g * g;
+                        *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + EPSILON);
+                    }
+                },
+            );
             count += 1;
         }
         debug_assert_eq!(count, self.moments.len(), "adam: tensor count changed");

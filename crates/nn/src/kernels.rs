@@ -6,8 +6,48 @@
 //! so when every dimension is at least 6; the thin products below that (the first layer of a
 //! low-dimensional input, the output layer, single samples) use the vector loops here, written so
 //! that the compiler vectorises their inner loop.
+//!
+//! The build targets the baseline x86-64 (SSE2), so that one binary runs on every machine; the
+//! loops that are not products run through [`vectorized`], which compiles them again for AVX2
+//! and for AVX-512 and picks the widest this CPU has at run time (pulp's dispatch, safe code).
+//! Elementwise results do not depend on the choice: Rust never fuses a multiply and an add on
+//! its own, and every sum keeps its order, so each lane computes what the scalar loop would.
+
+use std::sync::LazyLock;
 
 use nalgebra::{DMatrixView, DMatrixViewMut};
+
+/// The widest SIMD extension of this CPU that [`vectorized`] uses, detected once.
+static ARCH: LazyLock<pulp::Arch> = LazyLock::new(pulp::Arch::new);
+
+/// Runs `f` compiled for the widest SIMD extension this CPU has (AVX-512, else AVX2 with FMA,
+/// else the build's baseline). For `f`'s loops to be compiled so, `f` must be an
+/// `#[inline(always)]` closure and every function it calls `#[inline(always)]` too; a call that
+/// is not inlined runs at the baseline, correctly but slower.
+#[inline(always)]
+pub(crate) fn vectorized<R>(f: impl FnOnce() -> R) -> R {
+    struct Op<F>(F);
+    impl<R, F: FnOnce() -> R> pulp::WithSimd for Op<F> {
+        type Output = R;
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) -> R {
+            (self.0)()
+        }
+    }
+    ARCH.dispatch(Op(f))
+}
+
+/// The name of the SIMD extension [`vectorized`] runs on this CPU: `avx512`, `avx2` or
+/// `baseline`.
+pub fn simd_extension() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    match *ARCH {
+        pulp::Arch::V4(_) => return "avx512",
+        pulp::Arch::V3(_) => return "avx2",
+        _ => {}
+    }
+    "baseline"
+}
 
 /// The smallest dimension for which nalgebra hands a product to matrixmultiply.
 pub(crate) const SGEMM_MIN_DIM: usize = 6;
@@ -51,16 +91,165 @@ impl<'a> MatRef<'a> {
     }
 }
 
-/// `c = a * b` through matrixmultiply's `sgemm`; `c` is contiguous column-major and is
-/// overwritten (never read). Callers check [`fits_sgemm`] first: below it nalgebra would fall back
-/// to a slow generic loop.
+/// `c = a * b`; `c` is contiguous column-major and is overwritten (never read). Callers check
+/// [`fits_sgemm`] first: below it nalgebra would fall back to a slow generic loop.
+///
+/// When `a`'s columns are contiguous and the CPU has FMA (AVX2 or AVX-512), the product runs in
+/// [`panel_gemm`], this crate's kernel for the thin shapes of these networks, which needs no
+/// packing; otherwise in matrixmultiply's `sgemm`.
 pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
     debug_assert!(fits_sgemm(a.rows, a.cols, b.cols));
     debug_assert_eq!(a.cols, b.rows);
+    if a.rs == 1 && has_fma_kernel() {
+        panel_gemm(c, a, b);
+        return;
+    }
     let a = DMatrixView::from_slice_with_strides(a.data, a.rows, a.cols, a.rs, a.cs);
     let b = DMatrixView::from_slice_with_strides(b.data, b.rows, b.cols, b.rs, b.cs);
     let mut c = DMatrixViewMut::from_slice(&mut c[..a.nrows() * b.ncols()], a.nrows(), b.ncols());
     c.gemm(1.0, &a, &b, 0.0);
+}
+
+/// Whether [`panel_gemm`] runs here: on x86-64 with AVX2 and FMA, or AVX-512.
+pub(crate) fn has_fma_kernel() -> bool {
+    simd_extension() != "baseline"
+}
+
+/// Rows of `c` per block of [`panel_gemm`], in SIMD vectors: 4 with 16 lanes (AVX-512, 64 rows,
+/// a hidden layer of 64 in one block), 2 with 8 (AVX2, whose 16 registers would not hold 4 x 4
+/// accumulators and their operands).
+const fn block_vectors(lanes: usize) -> usize {
+    if lanes >= 16 { 4 } else { 2 }
+}
+
+/// Columns of `c` per block of [`panel_gemm`].
+const BLOCK_COLUMNS: usize = 4;
+
+/// `c = a * b` for `a` with contiguous columns (`a.rs == 1`), by register blocks of
+/// `block_vectors` SIMD vectors of rows by [`BLOCK_COLUMNS`] columns: for each `p`, the block's
+/// rows of column `p` of `a` are loaded once and multiplied by `b[p, j]` of each of the block's
+/// columns, accumulating with fused multiply-adds. Nothing is packed: `a`'s column is read in
+/// place, `b`'s elements one at a time, with any strides.
+///
+/// Every element of `c` is the chain `fma(a[i, k-1], b[k-1, j], ... fma(a[i, 0], b[0, j], 0))`
+/// in order of `p`, whatever the SIMD width and the block it falls in (the rows left over at the
+/// edge use the same chain in scalar fused multiply-adds), so the result is the same on AVX2 and
+/// AVX-512.
+fn panel_gemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
+    struct Op<'a> {
+        c: &'a mut [f32],
+        a: MatRef<'a>,
+        b: MatRef<'a>,
+    }
+    impl pulp::WithSimd for Op<'_> {
+        type Output = ();
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, simd: S) {
+            let Op { c, a, b } = self;
+            let m = a.rows;
+            let c = &mut c[..m * b.cols];
+            let mut b_panel = [0.0f32; PANEL_STEPS * BLOCK_COLUMNS];
+            let mut j = 0;
+            while j + BLOCK_COLUMNS <= b.cols {
+                panel::<S, BLOCK_COLUMNS>(simd, c, a, b, j, &mut b_panel);
+                j += BLOCK_COLUMNS;
+            }
+            while j < b.cols {
+                panel::<S, 1>(simd, c, a, b, j, &mut b_panel);
+                j += 1;
+            }
+        }
+    }
+    debug_assert_eq!(a.rs, 1);
+    ARCH.dispatch(Op { c, a, b });
+}
+
+/// Columns `j..j + N` of `c = a * b` (see [`panel_gemm`]).
+#[inline(always)]
+fn panel<S: pulp::Simd, const N: usize>(
+    simd: S,
+    c: &mut [f32],
+    a: MatRef<'_>,
+    b: MatRef<'_>,
+    j: usize,
+    b_panel: &mut [f32; PANEL_STEPS * BLOCK_COLUMNS],
+) {
+    let lanes = S::F32_LANES;
+    let m = a.rows;
+    let rows = block_vectors(lanes) * lanes;
+    let mut i = 0;
+    while i + rows <= m {
+        if block_vectors(lanes) == 4 {
+            block::<S, 4, N>(simd, c, a, b, i, j, b_panel);
+        } else {
+            block::<S, 2, N>(simd, c, a, b, i, j, b_panel);
+        }
+        i += rows;
+    }
+    while i + lanes <= m {
+        block::<S, 1, N>(simd, c, a, b, i, j, b_panel);
+        i += lanes;
+    }
+    for i in i..m {
+        for jj in j..j + N {
+            let mut acc = 0.0f32;
+            for p in 0..a.cols {
+                acc = a.data[i + p * a.cs].mul_add(b.data[p * b.rs + jj * b.cs], acc);
+            }
+            c[i + jj * m] = acc;
+        }
+    }
+}
+
+/// Steps of `p` whose elements of `b` [`block`] copies into a small array at a time, so that its
+/// inner loop reads them without bounds checks, whatever `b`'s strides.
+const PANEL_STEPS: usize = 128;
+
+/// Rows `i..i + V * lanes` by columns `j..j + N` of `c = a * b` (see [`panel_gemm`]).
+#[inline(always)]
+fn block<S: pulp::Simd, const V: usize, const N: usize>(
+    simd: S,
+    c: &mut [f32],
+    a: MatRef<'_>,
+    b: MatRef<'_>,
+    i: usize,
+    j: usize,
+    b_panel: &mut [f32; PANEL_STEPS * BLOCK_COLUMNS],
+) {
+    let lanes = S::F32_LANES;
+    let m = a.rows;
+    let load = |s: &[f32]| -> S::f32s {
+        pulp::bytemuck::pod_read_unaligned(pulp::bytemuck::cast_slice(&s[..lanes]))
+    };
+    let mut acc = [[simd.splat_f32s(0.0); N]; V];
+    let mut p0 = 0;
+    while p0 < a.cols {
+        let steps = PANEL_STEPS.min(a.cols - p0);
+        for (q, row) in b_panel[..steps * N].chunks_exact_mut(N).enumerate() {
+            for (jj, value) in row.iter_mut().enumerate() {
+                *value = b.data[(p0 + q) * b.rs + (j + jj) * b.cs];
+            }
+        }
+        let columns = a.data[i + p0 * a.cs..].chunks(a.cs);
+        for (column, b_row) in columns.zip(b_panel[..steps * N].chunks_exact(N)) {
+            let column = &column[..V * lanes];
+            let av: [S::f32s; V] = std::array::from_fn(|v| load(&column[v * lanes..]));
+            for (jj, &b_value) in b_row.iter().enumerate() {
+                let bv = simd.splat_f32s(b_value);
+                for v in 0..V {
+                    acc[v][jj] = simd.mul_add_f32s(av[v], bv, acc[v][jj]);
+                }
+            }
+        }
+        p0 += steps;
+    }
+    for (v, row_acc) in acc.iter().enumerate() {
+        for (jj, value) in row_acc.iter().enumerate() {
+            let at = i + v * lanes + (j + jj) * m;
+            pulp::bytemuck::cast_slice_mut::<f32, u8>(&mut c[at..at + lanes])
+                .copy_from_slice(pulp::bytemuck::bytes_of(value));
+        }
+    }
 }
 
 /// Single-core GFLOP/s of this crate's `sgemm` path on the three products a hidden
@@ -81,10 +270,18 @@ pub fn hidden_layer_sgemm_gflops(width: usize, batch: usize, min_seconds: f64) -
         fill(width * batch),
     );
     let (mut out, mut grad) = (vec![0.0; width * batch], vec![0.0; width * width]);
+    let mut wt = vec![0.0; width * width];
     let mut round = || {
         let w = MatRef::col_major(&w, width, width);
         sgemm(&mut out, w, MatRef::col_major(&x, width, batch));
-        sgemm(&mut out, w.t(), MatRef::col_major(&dz, width, batch));
+        // As an update does: the transpose made contiguous first where the FMA kernel runs.
+        let w_t = if has_fma_kernel() {
+            transpose(w.data, width, width, &mut wt);
+            MatRef::col_major(&wt, width, width)
+        } else {
+            w.t()
+        };
+        sgemm(&mut out, w_t, MatRef::col_major(&dz, width, batch));
         sgemm(
             &mut grad,
             MatRef::col_major(&dz, width, batch),
@@ -104,7 +301,7 @@ pub fn hidden_layer_sgemm_gflops(width: usize, batch: usize, min_seconds: f64) -
 }
 
 /// `y += s * x`.
-#[inline]
+#[inline(always)]
 pub(crate) fn axpy(y: &mut [f32], s: f32, x: &[f32]) {
     debug_assert_eq!(y.len(), x.len());
     for (y, x) in y.iter_mut().zip(x) {
@@ -114,7 +311,7 @@ pub(crate) fn axpy(y: &mut [f32], s: f32, x: &[f32]) {
 
 /// Dot product with eight independent partial sums, so that it vectorises (floating-point addition
 /// is not associative, so the compiler will not reorder a single running sum).
-#[inline]
+#[inline(always)]
 pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
     debug_assert_eq!(a.len(), b.len());
     let mut acc = [0.0f32; 8];
@@ -134,6 +331,7 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
 }
 
 /// Writes the transpose of the column-major `rows x cols` matrix `a` into `out` (`cols x rows`).
+#[inline(always)]
 pub(crate) fn transpose(a: &[f32], rows: usize, cols: usize, out: &mut [f32]) {
     debug_assert_eq!(a.len(), rows * cols);
     for (i, out_col) in out[..rows * cols].chunks_exact_mut(cols).enumerate() {
@@ -203,6 +401,70 @@ mod tests {
         sgemm(&mut c, a_view, b_view);
         let want = naive(MatRef::col_major(&a, m, k), MatRef::col_major(&b, k, n));
         assert_eq!(c, want);
+    }
+
+    /// What [`panel_gemm`] promises for every element: the fused multiply-add chain in order of
+    /// `p`, starting from 0.
+    fn fused_chain(a: MatRef<'_>, b: MatRef<'_>) -> Vec<f32> {
+        let mut c = vec![0.0; a.rows * b.cols];
+        for j in 0..b.cols {
+            for i in 0..a.rows {
+                let mut acc = 0.0f32;
+                for p in 0..a.cols {
+                    acc = a.data[i * a.rs + p * a.cs].mul_add(b.data[p * b.rs + j * b.cs], acc);
+                }
+                c[i + j * a.rows] = acc;
+            }
+        }
+        c
+    }
+
+    #[test]
+    fn panel_gemm_computes_each_element_as_the_fused_chain() {
+        if !has_fma_kernel() {
+            eprintln!("no AVX2/FMA on this CPU: panel_gemm does not run here, nothing to check");
+            return;
+        }
+        let mut rng = hac_core::Rng::seed_from(7);
+        // Full blocks, leftover vectors, leftover scalar rows and columns, long reductions.
+        let shapes = [
+            (64, 64, 256),
+            (64, 5, 9),
+            (7, 9, 11),
+            (37, 13, 6),
+            (100, 20, 17),
+            (16, 64, 4),
+            (64, 300, 64),
+            (8, 3, 1),
+        ];
+        for (m, k, n) in shapes {
+            // `a` as the rows 2..2 + m of a taller column-major matrix (columns contiguous, with a
+            // stride beyond m), `b` both column-major and as the transpose of a stored matrix.
+            let lda = m + 3;
+            let a_data: Vec<f32> = (0..lda * k).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let a = MatRef {
+                data: &a_data[2..],
+                rows: m,
+                cols: k,
+                rs: 1,
+                cs: lda,
+            };
+            let b_data: Vec<f32> = (0..k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            for b in [
+                MatRef::col_major(&b_data, k, n),
+                MatRef::col_major(&b_data, n, k).t(),
+            ] {
+                let mut c = vec![f32::NAN; m * n];
+                panel_gemm(&mut c, a, b);
+                let want = fused_chain(a, b);
+                assert!(
+                    c.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()),
+                    "{m}x{k} by {k}x{n} (b strides {} {}): not the fused chain",
+                    b.rs,
+                    b.cs
+                );
+            }
+        }
     }
 
     #[test]

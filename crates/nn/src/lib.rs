@@ -44,7 +44,7 @@ pub use adam::Adam;
 pub use critic::CriticNet;
 pub use error::NnError;
 pub use hiro::BatchedCorrection;
-pub use kernels::hidden_layer_sgemm_gflops;
+pub use kernels::{hidden_layer_sgemm_gflops, simd_extension};
 pub use learner::{
     Diverged, GRADIENT_CHUNKS, LearnerBackup, LearnerConfig, LevelLearner, MIN_CHUNK_SAMPLES,
     PARAMETER_LIMIT, UpdateStats,

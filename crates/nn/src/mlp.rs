@@ -8,7 +8,9 @@ use hac_core::Rng;
 
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
-use crate::kernels::{MatRef, SGEMM_MIN_DIM, axpy, dot, fits_sgemm, sgemm, transpose};
+use crate::kernels::{
+    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_sgemm, has_fma_kernel, sgemm, transpose, vectorized,
+};
 
 /// Half-width of the output layer's initial weights and biases: small, so that the network
 /// starts at the centre of its output activation (DDPG's choice, kept by HAC).
@@ -45,20 +47,30 @@ impl Dense {
         } else if out < SGEMM_MIN_DIM && out < inp {
             // Few outputs (the output layer): one dot product per output over a row of W.
             let wt = &mut packed[..inp * out];
-            transpose(&self.w, out, inp, wt);
-            for (zc, xc) in z.chunks_exact_mut(out).zip(x.chunks_exact(inp)) {
-                for (zv, row) in zc.iter_mut().zip(wt.chunks_exact(inp)) {
-                    *zv = dot(row, xc);
-                }
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    transpose(&self.w, out, inp, wt);
+                    for (zc, xc) in z.chunks_exact_mut(out).zip(x.chunks_exact(inp)) {
+                        for (zv, row) in zc.iter_mut().zip(wt.chunks_exact(inp)) {
+                            *zv = dot(row, xc);
+                        }
+                    }
+                },
+            );
         } else {
             // Few inputs (a first layer) or few samples (`ActorNet::act`): a sum of W's columns.
-            for (zc, xc) in z.chunks_exact_mut(out).zip(x.chunks_exact(inp)) {
-                zc.fill(0.0);
-                for (col, &xv) in self.w.chunks_exact(out).zip(xc) {
-                    axpy(zc, xv, col);
-                }
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (zc, xc) in z.chunks_exact_mut(out).zip(x.chunks_exact(inp)) {
+                        zc.fill(0.0);
+                        for (col, &xv) in self.w.chunks_exact(out).zip(xc) {
+                            axpy(zc, xv, col);
+                        }
+                    }
+                },
+            );
         }
     }
 
@@ -74,28 +86,53 @@ impl Dense {
         let (inp, out, r) = (self.inp, self.out, rows.len());
         // Columns `rows` of W: an `out x r` column-major block.
         let w_cols = &self.w[rows.start * out..rows.end * out];
-        if fits_sgemm(r, out, n) {
+        if fits_sgemm(r, out, n) && has_fma_kernel() {
+            // The kernel wants the left operand's columns contiguous: W^T's are W's rows.
+            let wt = &mut packed[..inp * out];
+            vectorized(
+                #[inline(always)]
+                || transpose(&self.w, out, inp, wt),
+            );
+            let wt_rows = MatRef {
+                data: &wt[rows.start..],
+                rows: r,
+                cols: out,
+                rs: 1,
+                cs: inp,
+            };
+            sgemm(dx, wt_rows, MatRef::col_major(dz, out, n));
+        } else if fits_sgemm(r, out, n) {
             sgemm(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
                 MatRef::col_major(dz, out, n),
             );
         } else if r <= out {
-            for (dxc, dzc) in dx.chunks_exact_mut(r).zip(dz.chunks_exact(out)) {
-                for (v, col) in dxc.iter_mut().zip(w_cols.chunks_exact(out)) {
-                    *v = dot(col, dzc);
-                }
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (dxc, dzc) in dx.chunks_exact_mut(r).zip(dz.chunks_exact(out)) {
+                        for (v, col) in dxc.iter_mut().zip(w_cols.chunks_exact(out)) {
+                            *v = dot(col, dzc);
+                        }
+                    }
+                },
+            );
         } else {
             // Few outputs: a sum of W's rows, made contiguous first.
             let wt = &mut packed[..inp * out];
-            transpose(&self.w, out, inp, wt);
-            for (dxc, dzc) in dx.chunks_exact_mut(r).zip(dz.chunks_exact(out)) {
-                dxc.fill(0.0);
-                for (row, &d) in wt.chunks_exact(inp).zip(dzc) {
-                    axpy(dxc, d, &row[rows.clone()]);
-                }
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    transpose(&self.w, out, inp, wt);
+                    for (dxc, dzc) in dx.chunks_exact_mut(r).zip(dz.chunks_exact(out)) {
+                        dxc.fill(0.0);
+                        for (row, &d) in wt.chunks_exact(inp).zip(dzc) {
+                            axpy(dxc, d, &row[rows.clone()]);
+                        }
+                    }
+                },
+            );
         }
     }
 
@@ -109,22 +146,33 @@ impl Dense {
                 MatRef::col_major(x, inp, n).t(),
             );
         } else if inp <= out {
-            self.w.fill(0.0);
-            for (dzc, xc) in dz.chunks_exact(out).zip(x.chunks_exact(inp)) {
-                for (gc, &xv) in self.w.chunks_exact_mut(out).zip(xc) {
-                    axpy(gc, xv, dzc);
-                }
-            }
+            let w = &mut self.w;
+            vectorized(
+                #[inline(always)]
+                || {
+                    w.fill(0.0);
+                    for (dzc, xc) in dz.chunks_exact(out).zip(x.chunks_exact(inp)) {
+                        for (gc, &xv) in w.chunks_exact_mut(out).zip(xc) {
+                            axpy(gc, xv, dzc);
+                        }
+                    }
+                },
+            );
         } else {
             // Few outputs: accumulate W^T, whose columns are then contiguous, and transpose once.
-            let gt = &mut packed[..inp * out];
-            gt.fill(0.0);
-            for (dzc, xc) in dz.chunks_exact(out).zip(x.chunks_exact(inp)) {
-                for (gr, &d) in gt.chunks_exact_mut(inp).zip(dzc) {
-                    axpy(gr, d, xc);
-                }
-            }
-            transpose(gt, inp, out, &mut self.w);
+            let (gt, w) = (&mut packed[..inp * out], &mut self.w);
+            vectorized(
+                #[inline(always)]
+                || {
+                    gt.fill(0.0);
+                    for (dzc, xc) in dz.chunks_exact(out).zip(x.chunks_exact(inp)) {
+                        for (gr, &d) in gt.chunks_exact_mut(inp).zip(dzc) {
+                            axpy(gr, d, xc);
+                        }
+                    }
+                    transpose(gt, inp, out, w);
+                },
+            );
         }
     }
 }
@@ -294,9 +342,14 @@ impl Mlp {
     /// `self <- tau * source + (1 - tau) * self` (Polyak averaging of target networks).
     pub(crate) fn polyak_toward(&mut self, source: &Mlp, tau: f32) {
         for (t, s) in self.tensors_mut().zip(source.tensors()) {
-            for (t, s) in t.iter_mut().zip(s) {
-                *t += tau * (s - *t);
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (t, s) in t.iter_mut().zip(s) {
+                        *t += tau * (s - *t);
+                    }
+                },
+            );
         }
     }
 
@@ -397,9 +450,14 @@ impl MlpGrads {
     /// `self <- self + other`, element by element (gradients of the same network).
     pub(crate) fn add(&mut self, other: &MlpGrads) {
         for (t, o) in self.tensors_mut().zip(other.tensors()) {
-            for (t, o) in t.iter_mut().zip(o) {
-                *t += o;
-            }
+            vectorized(
+                #[inline(always)]
+                || {
+                    for (t, o) in t.iter_mut().zip(o) {
+                        *t += o;
+                    }
+                },
+            );
         }
     }
 }
@@ -528,53 +586,71 @@ impl MlpWorkspace {
 }
 
 fn add_bias(z: &mut [f32], b: &[f32]) {
-    for col in z.chunks_exact_mut(b.len()) {
-        for (v, b) in col.iter_mut().zip(b) {
-            *v += b;
-        }
-    }
+    vectorized(
+        #[inline(always)]
+        || {
+            for col in z.chunks_exact_mut(b.len()) {
+                for (v, b) in col.iter_mut().zip(b) {
+                    *v += b;
+                }
+            }
+        },
+    );
 }
 
 fn add_bias_relu(z: &mut [f32], b: &[f32]) {
-    for col in z.chunks_exact_mut(b.len()) {
-        for (v, b) in col.iter_mut().zip(b) {
-            let x = *v + b;
-            *v = if x > 0.0 { x } else { 0.0 };
-        }
-    }
+    vectorized(
+        #[inline(always)]
+        || {
+            for col in z.chunks_exact_mut(b.len()) {
+                for (v, b) in col.iter_mut().zip(b) {
+                    let x = *v + b;
+                    *v = if x > 0.0 { x } else { 0.0 };
+                }
+            }
+        },
+    );
 }
 
 /// Turns `g`, the gradient with respect to a hidden layer's ReLU output `h`, into the gradient
 /// with respect to its pre-activation; with `bias_grad`, also sets that to its row sums.
 fn relu_backward(g: &mut [f32], h: &[f32], bias_grad: Option<&mut [f32]>) {
-    match bias_grad {
-        Some(bg) => {
-            bg.fill(0.0);
-            let width = bg.len();
-            for (gc, hc) in g.chunks_exact_mut(width).zip(h.chunks_exact(width)) {
-                for ((gv, &hv), b) in gc.iter_mut().zip(hc).zip(bg.iter_mut()) {
-                    *gv = if hv > 0.0 { *gv } else { 0.0 };
-                    *b += *gv;
+    vectorized(
+        #[inline(always)]
+        || match bias_grad {
+            Some(bg) => {
+                bg.fill(0.0);
+                let width = bg.len();
+                for (gc, hc) in g.chunks_exact_mut(width).zip(h.chunks_exact(width)) {
+                    for ((gv, &hv), b) in gc.iter_mut().zip(hc).zip(bg.iter_mut()) {
+                        *gv = if hv > 0.0 { *gv } else { 0.0 };
+                        *b += *gv;
+                    }
                 }
             }
-        }
-        None => {
-            // A select rather than a conditional store, so that the loop vectorises.
-            for (gv, &hv) in g.iter_mut().zip(h) {
-                *gv = if hv > 0.0 { *gv } else { 0.0 };
+            None => {
+                // A select rather than a conditional store, so that the loop vectorises.
+                for (gv, &hv) in g.iter_mut().zip(h) {
+                    *gv = if hv > 0.0 { *gv } else { 0.0 };
+                }
             }
-        }
-    }
+        },
+    );
 }
 
 /// `out[i] = sum_j g[i, j]` for the column-major `out.len() x n` matrix `g`.
 fn row_sums(g: &[f32], out: &mut [f32]) {
-    out.fill(0.0);
-    for col in g.chunks_exact(out.len()) {
-        for (o, v) in out.iter_mut().zip(col) {
-            *o += v;
-        }
-    }
+    vectorized(
+        #[inline(always)]
+        || {
+            out.fill(0.0);
+            for col in g.chunks_exact(out.len()) {
+                for (o, v) in out.iter_mut().zip(col) {
+                    *o += v;
+                }
+            }
+        },
+    );
 }
 
 #[cfg(test)]

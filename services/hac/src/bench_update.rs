@@ -63,6 +63,8 @@ pub struct UpdateReport {
     pub flops_per_update: u64,
     /// Single-core GFLOP/s of `sgemm` on the widest hidden layer's products at this batch.
     pub sgemm_peak_gflops: f64,
+    /// The SIMD extension the kernels run on here (`avx512`, `avx2` or `baseline`).
+    pub simd: String,
     pub rows: Vec<ThreadsRow>,
 }
 
@@ -177,6 +179,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
         chunks: (batch_size / hac_nn::MIN_CHUNK_SAMPLES).clamp(1, hac_nn::GRADIENT_CHUNKS),
         flops_per_update: flops,
         sgemm_peak_gflops,
+        simd: hac_nn::simd_extension().to_string(),
         rows,
     })
 }
@@ -192,7 +195,7 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
     println!(
         "{} level {} of {} (state {}, goal {}, action {}), batch {}, hidden {}: {:.1} MFLOP per \
          update (matrix products) in {} chunks; single-core sgemm on the same shapes: {:.1} \
-         GFLOP/s; {} cores",
+         GFLOP/s; kernels {}; {} cores",
         r.env,
         r.level,
         r.levels,
@@ -204,6 +207,7 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.flops_per_update as f64 / 1e6,
         r.chunks,
         r.sgemm_peak_gflops,
+        r.simd,
         r.cores
     );
     println!("| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup |");

@@ -1017,6 +1017,10 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
         report["sgemm_peak_gflops"].as_f64().unwrap() > 0.1,
         "{report}"
     );
+    assert!(
+        ["avx512", "avx2", "baseline"].contains(&report["simd"].as_str().unwrap()),
+        "{report}"
+    );
     for (row, threads) in rows.iter().zip([1, 2]) {
         assert_eq!(row["threads"], threads, "{report}");
         assert!(row["updates"].as_u64().unwrap() > 0, "{report}");
