@@ -568,9 +568,10 @@ mod tests {
                 0
             }
         }
-        /// Per low-level step: p(s), g, r, p(s').
+        /// One low-level step: p(s), g, r, p(s').
+        type Step = ([f32; 2], [f32; 2], f32, [f32; 2]);
         #[derive(Default)]
-        struct Steps(Vec<([f32; 2], [f32; 2], f32, [f32; 2])>);
+        struct Steps(Vec<Step>);
         impl HiroSink for Steps {
             fn push_low(&mut self, t: &Transition<'_>) {
                 let (mut p, mut next) = ([0.0; 2], [0.0; 2]);
