@@ -40,6 +40,13 @@ pub struct EnvSpec {
     /// is.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub subgoal_angles: Vec<bool>,
+    /// Subgoal dimensions that the projection wraps to (-pi, pi] (angles in radians) but that
+    /// the goal test compares as plain numbers (not in `subgoal_angles`; the pendulum's angle,
+    /// as in the reference's goal test). Differences of two projections, HIRO's relative goals,
+    /// are still taken along the circle on them ([`EnvSpec::relative_goal_angles`]). Empty when
+    /// none is.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub subgoal_wrapped: Vec<bool>,
     /// A box that every observation of an episode started by `reset` stays in (each
     /// environment derives its own). Not used by the agent: transitions that come from outside
     /// the process (an actor's batches) are checked against it ([`crate::TransitionLimits`]).
@@ -95,6 +102,22 @@ impl EnvSpec {
             (&self.end_goal_thresholds, &self.end_goal_angles)
         } else {
             (&self.subgoal_thresholds, &self.subgoal_angles)
+        }
+    }
+
+    /// The subgoal dimensions on which differences of two projections (HIRO's relative goals,
+    /// goal transition and intrinsic reward) are wrapped to `[-pi, pi]`: those of
+    /// `subgoal_angles` and of `subgoal_wrapped`. Empty when none is.
+    pub fn relative_goal_angles(&self) -> Vec<bool> {
+        let dims = self.subgoal_angles.len().max(self.subgoal_wrapped.len());
+        let flag = |flags: &[bool], d: usize| flags.get(d).copied().unwrap_or(false);
+        let angles: Vec<bool> = (0..dims)
+            .map(|d| flag(&self.subgoal_angles, d) || flag(&self.subgoal_wrapped, d))
+            .collect();
+        if angles.contains(&true) {
+            angles
+        } else {
+            Vec::new()
         }
     }
 

@@ -354,6 +354,7 @@ mod tests {
             subgoal_thresholds: vec![0.1, 0.1],
             end_goal_angles: Vec::new(),
             subgoal_angles: Vec::new(),
+            subgoal_wrapped: Vec::new(),
             state_bounds: Bounds::symmetric(&[10.0, 1.0]),
             end_goal_bounds: Bounds::symmetric(&[5.0]),
             achieved_subgoal_bounds: Bounds::symmetric(&[2.0, 0.5]),

@@ -225,6 +225,7 @@ fn spec() -> EnvSpec {
         // The pole angle is compared along the circle, positions and speeds as numbers.
         end_goal_angles: vec![false, true, false],
         subgoal_angles: vec![false, true, false, false],
+        subgoal_wrapped: Vec::new(),
         state_bounds: Bounds::symmetric(&[0.0, 1.0, 1.0, MAX_CART_SPEED, MAX_POLE_SPEED]),
         end_goal_bounds: Bounds::symmetric(&[0.0, PI_F32, SUBGOAL_LIMITS[3]]),
         achieved_subgoal_bounds: Bounds::symmetric(&[

@@ -112,6 +112,7 @@ fn spec() -> EnvSpec {
         subgoal_thresholds: thresholds,
         end_goal_angles: Vec::new(),
         subgoal_angles: Vec::new(),
+        subgoal_wrapped: Vec::new(),
         // The dynamics clip position and speed to these: states, goals and projections alike.
         state_bounds: everywhere.clone(),
         end_goal_bounds: everywhere.clone(),

@@ -148,8 +148,13 @@ fn spec() -> EnvSpec {
         end_goal_thresholds: thresholds.clone(),
         subgoal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
         subgoal_thresholds: thresholds,
+        // The goal tests compare the angle as a plain number, as the reference's do (goals
+        // near the bottom are missed across the seam; the end goals are near the top, where
+        // it makes no difference). HIRO's relative goals, differences of two wrapped angles,
+        // take it along the circle.
         end_goal_angles: Vec::new(),
         subgoal_angles: Vec::new(),
+        subgoal_wrapped: vec![true, false],
         state_bounds: Bounds::symmetric(&[1.0, 1.0, MAX_SPEED]),
         end_goal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
         achieved_subgoal_bounds: Bounds::symmetric(&[PI_F32, GOAL_SPEED_LIMIT]),
@@ -523,5 +528,95 @@ mod tests {
         assert!(env.set_physical_state(&[0.0, f64::INFINITY]).is_err());
         env.set_physical_state(&[7.0, 1.0]).unwrap();
         assert!((env.physical_state()[0] - (7.0 - 2.0 * PI)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn goal_tests_compare_plain_numbers_but_relative_goals_wrap_the_angle() {
+        let spec = Pendulum::new().spec().clone();
+        assert!(spec.end_goal_angles.is_empty() && spec.subgoal_angles.is_empty());
+        assert_eq!(spec.relative_goal_angles(), [true, false]);
+        // Tasks that flag their angles for the goal test use the same flags; others none.
+        let ur5 = crate::make("ur5-reacher").unwrap().spec().clone();
+        assert_eq!(ur5.relative_goal_angles(), ur5.subgoal_angles);
+        let car = crate::make("mountain-car").unwrap().spec().clone();
+        assert!(car.relative_goal_angles().is_empty());
+    }
+
+    /// HIRO's low level on the pendulum: relative goals are differences of angles that the
+    /// projection wraps to (-pi, pi], so the goal transition and the intrinsic reward must take
+    /// them along the circle, or a pole swinging through the bottom (where q jumps from pi to
+    /// -pi) earns a reward of about -2 pi for a step of a few hundredths of a radian.
+    #[test]
+    fn hiro_takes_the_angle_along_the_circle_through_the_bottom() {
+        use hac_core::hiro::{HighTransition, HiroRollout, HiroSink};
+        use hac_core::{Exploration, Policy, Transition};
+
+        /// Level 1 proposes "stay where you are" (a zero offset); level 0 pushes at full torque.
+        struct Scripted;
+        impl Policy for Scripted {
+            fn act(&mut self, level: usize, _: &[f32], _: &[f32], action: &mut [f32]) {
+                action.fill(if level == 0 { MAX_TORQUE } else { 0.0 });
+            }
+        }
+        struct Greedy;
+        impl Exploration for Greedy {
+            fn explore(&mut self, _: usize, _: &[f32], _: &Bounds, _: &mut [f32]) {}
+            fn test_subgoal(&mut self, _: usize) -> bool {
+                false
+            }
+            fn replay_goal_index(&mut self, _: usize, _: usize) -> usize {
+                0
+            }
+        }
+        /// One low-level step: p(s), g, r, p(s').
+        type Step = ([f32; 2], [f32; 2], f32, [f32; 2]);
+        #[derive(Default)]
+        struct Steps(Vec<Step>);
+        impl HiroSink for Steps {
+            fn push_low(&mut self, t: &Transition<'_>) {
+                let (mut p, mut next) = ([0.0; 2], [0.0; 2]);
+                project(t.state, &mut p);
+                project(t.next_state, &mut next);
+                self.0.push((p, [t.goal[0], t.goal[1]], t.reward, next));
+            }
+            fn push_high(&mut self, _: &HighTransition<'_>) {}
+        }
+
+        let mut env = Pendulum::new();
+        env.set_max_actions(300);
+        let c = 10;
+        let mut rollout = HiroRollout::new(&env.spec().clone(), c);
+        let mut steps = Steps::default();
+        rollout.run_episode(
+            &mut env,
+            &mut Scripted,
+            &mut Greedy,
+            Mode::Train,
+            &mut Rng::seed_from(5),
+            &mut steps,
+        );
+        let wrap = |x: f32| wrap_angle(f64::from(x)) as f32;
+        let mut crossings = 0;
+        for (i, (p, goal, reward, next)) in steps.0.iter().enumerate() {
+            // The goal names p(s_k) of the segment's first step k: its angle is the short turn
+            // back there, and the reward the distance to it from p(s') along the circle.
+            let start = &steps.0[i - i % c].0;
+            assert!(
+                (goal[0] - wrap(start[0] - p[0])).abs() < 1e-4,
+                "step {i}: goal angle {} from {} to {}",
+                goal[0],
+                p[0],
+                start[0]
+            );
+            let miss = [wrap(p[0] + goal[0] - next[0]), p[1] + goal[1] - next[1]];
+            let want = -(miss[0] * miss[0] + miss[1] * miss[1]).sqrt();
+            assert!((reward - want).abs() < 1e-4, "step {i}: {reward} vs {want}");
+            crossings +=
+                usize::from(p[0].abs() > 3.0 && next[0].abs() > 3.0 && p[0] * next[0] < 0.0);
+        }
+        assert!(
+            crossings >= 2,
+            "the pole crossed the bottom {crossings} times"
+        );
     }
 }

@@ -533,6 +533,7 @@ fn spec() -> EnvSpec {
         subgoal_thresholds,
         end_goal_angles: Vec::new(),
         subgoal_angles: Vec::new(),
+        subgoal_wrapped: Vec::new(),
         state_bounds: Bounds::new(state_low.to_vec(), state_high.to_vec()),
         end_goal_bounds: Bounds::new(state_low[4..7].to_vec(), state_high[4..7].to_vec()),
         achieved_subgoal_bounds: Bounds::new(state_low[..7].to_vec(), state_high[..7].to_vec()),

@@ -220,6 +220,7 @@ fn spec() -> EnvSpec {
         // Joint angles are compared along the circle, velocities as numbers.
         end_goal_angles: vec![true; JOINTS],
         subgoal_angles: [[true; JOINTS], [false; JOINTS]].concat(),
+        subgoal_wrapped: Vec::new(),
         state_bounds: Bounds::symmetric(&[PI_F32, PI_F32, PI_F32, MAX_SPEED, MAX_SPEED, MAX_SPEED]),
         end_goal_bounds: Bounds::symmetric(&[PI_F32; JOINTS]),
         achieved_subgoal_bounds: Bounds::symmetric(&[

@@ -47,7 +47,7 @@ impl HiroPrep {
         if level == 0 {
             Self::Low(LowPrep {
                 env,
-                angles: spec.subgoal_angles.clone(),
+                angles: spec.relative_goal_angles(),
                 achieved: vec![0.0; g],
                 next_achieved: vec![0.0; g],
                 next_goals: Vec::new(),
@@ -58,7 +58,7 @@ impl HiroPrep {
                 correction: BatchedCorrection::new(
                     candidates,
                     goal_radius(&spec),
-                    spec.subgoal_angles.clone(),
+                    spec.relative_goal_angles(),
                 ),
                 low: None,
             }))

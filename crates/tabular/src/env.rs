@@ -60,6 +60,7 @@ impl FourRooms {
             subgoal_thresholds: vec![0.5, 0.5],
             end_goal_angles: Vec::new(),
             subgoal_angles: Vec::new(),
+            subgoal_wrapped: Vec::new(),
             state_bounds: Bounds::new(vec![0.0, 0.0], vec![last, last]),
             end_goal_bounds: Bounds::new(vec![0.0, 0.0], vec![last, last]),
             achieved_subgoal_bounds: Bounds::new(vec![0.0, 0.0], vec![last, last]),

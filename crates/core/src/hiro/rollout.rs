@@ -54,6 +54,9 @@ pub struct HiroRollout {
     c: usize,
     /// The relative goals' box, `[-r, r]`.
     goal_bounds: Bounds,
+    /// The subgoal dimensions whose differences are taken along the circle
+    /// ([`EnvSpec::relative_goal_angles`]).
+    angles: Vec<bool>,
     state: Vec<f32>,
     end_goal: Vec<f32>,
     /// The low level's current goal and the next one.
@@ -91,6 +94,7 @@ impl HiroRollout {
             spec: spec.clone(),
             c,
             goal_bounds: Bounds::symmetric(&radius),
+            angles: spec.relative_goal_angles(),
             state: vec![0.0; spec.state_dim],
             end_goal: vec![0.0; spec.end_goal_dim],
             goal: vec![0.0; g],
@@ -160,7 +164,7 @@ impl HiroRollout {
         env.sample_end_goal(rng, mode, &mut self.end_goal);
         let train = mode == Mode::Train;
         let (threshold, angles) = self.spec.goal_test(true);
-        let subgoal_angles = &self.spec.subgoal_angles;
+        let subgoal_angles = &self.angles;
         self.state.copy_from_slice(env.state());
         env.project_subgoal(&self.state, &mut self.achieved);
         let (mut steps, mut success) = (0, false);

@@ -32,6 +32,7 @@ impl PointEnv {
             subgoal_thresholds: vec![threshold; dim],
             end_goal_angles: Vec::new(),
             subgoal_angles: Vec::new(),
+            subgoal_wrapped: Vec::new(),
             state_bounds: Bounds::default(),
             end_goal_bounds: Bounds::default(),
             achieved_subgoal_bounds: Bounds::default(),
