@@ -2,7 +2,9 @@
 //! (batch 1024, hidden [64, 64, 64]) for pendulum-like levels and for pick-and-place's widest
 //! levels (state 20; level 0 with a 7-wide subgoal and 4 actions, the top level with the 3-wide
 //! end goal proposing 7-wide subgoals), the pendulum-like level on two threads, and one greedy
-//! single-sample action. Target: an update within 1.5 ms on one core.
+//! single-sample action. Target: an update within 2.1 ms on one core of the project's 2-core
+//! machine (docs/RESULTS.md); `crates/nn/benches/pytorch_update.py` times the same update in
+//! PyTorch.
 
 use std::hint::black_box;
 

@@ -207,6 +207,7 @@ const PANEL_STEPS: usize = 128;
 
 /// Rows `i..i + V * lanes` by columns `j..j + N` of `c = a * b` (see [`panel_gemm`]).
 #[inline(always)]
+#[allow(clippy::needless_range_loop)] // `p` indexes `a`'s columns and `b`'s together
 fn block<S: pulp::Simd, const V: usize, const N: usize>(
     simd: S,
     c: &mut [f32],
@@ -218,10 +219,74 @@ fn block<S: pulp::Simd, const V: usize, const N: usize>(
 ) {
     let lanes = S::F32_LANES;
     let m = a.rows;
-    let load = |s: &[f32]| -> S::f32s {
-        pulp::bytemuck::pod_read_unaligned(pulp::bytemuck::cast_slice(&s[..lanes]))
-    };
     let mut acc = [[simd.splat_f32s(0.0); N]; V];
+    let k = a.cols;
+    if b.rs == 1 {
+        // `b`'s columns are contiguous (a forward pass, an input gradient): read them in place.
+        let b_columns: [&[f32]; N] = std::array::from_fn(|jj| &b.data[(j + jj) * b.cs..][..k]);
+        for p in 0..k {
+            fma_step(simd, &mut acc, &a.data[i + p * a.cs..], |jj| {
+                b_columns[jj][p]
+            });
+        }
+    } else if b.cs == 1 {
+        // `b`'s rows are contiguous (a weight gradient, `b` a transposed view): the block's
+        // columns are `N` neighbours in row `p`.
+        let b_rows = b.data[j..].chunks(b.rs);
+        for (column, b_row) in a.data[i..].chunks(a.cs).zip(b_rows).take(k) {
+            let b_row = &b_row[..N];
+            fma_step(simd, &mut acc, column, |jj| b_row[jj]);
+        }
+    } else {
+        block_strided::<S, V, N>(simd, &mut acc, a, b, i, j, b_panel);
+    }
+    for (v, row_acc) in acc.iter().enumerate() {
+        for (jj, value) in row_acc.iter().enumerate() {
+            let at = i + v * lanes + (j + jj) * m;
+            pulp::bytemuck::cast_slice_mut::<f32, u8>(&mut c[at..at + lanes])
+                .copy_from_slice(pulp::bytemuck::bytes_of(value));
+        }
+    }
+}
+
+/// One step `p` of [`block`]: `acc[v][jj] <- fma(a[rows v, p], b_row(jj), acc[v][jj])`, with
+/// `column` the block's rows of column `p` of `a` (and possibly more after them) and `b_row(jj)`
+/// the element `b[p, j + jj]`.
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // `jj` and `v` index the register block in two dimensions
+fn fma_step<S: pulp::Simd, const V: usize, const N: usize>(
+    simd: S,
+    acc: &mut [[S::f32s; N]; V],
+    column: &[f32],
+    b_row: impl Fn(usize) -> f32,
+) {
+    let lanes = S::F32_LANES;
+    let column = &column[..V * lanes];
+    let av: [S::f32s; V] = std::array::from_fn(|v| {
+        pulp::bytemuck::pod_read_unaligned(pulp::bytemuck::cast_slice(
+            &column[v * lanes..(v + 1) * lanes],
+        ))
+    });
+    for jj in 0..N {
+        let bv = simd.splat_f32s(b_row(jj));
+        for v in 0..V {
+            acc[v][jj] = simd.mul_add_f32s(av[v], bv, acc[v][jj]);
+        }
+    }
+}
+
+/// [`block`]'s accumulation for a `b` with neither contiguous columns nor contiguous rows:
+/// `b`'s elements are first copied, [`PANEL_STEPS`] rows at a time, into `b_panel`.
+#[inline(always)]
+fn block_strided<S: pulp::Simd, const V: usize, const N: usize>(
+    simd: S,
+    acc: &mut [[S::f32s; N]; V],
+    a: MatRef<'_>,
+    b: MatRef<'_>,
+    i: usize,
+    j: usize,
+    b_panel: &mut [f32; PANEL_STEPS * BLOCK_COLUMNS],
+) {
     let mut p0 = 0;
     while p0 < a.cols {
         let steps = PANEL_STEPS.min(a.cols - p0);
@@ -232,23 +297,9 @@ fn block<S: pulp::Simd, const V: usize, const N: usize>(
         }
         let columns = a.data[i + p0 * a.cs..].chunks(a.cs);
         for (column, b_row) in columns.zip(b_panel[..steps * N].chunks_exact(N)) {
-            let column = &column[..V * lanes];
-            let av: [S::f32s; V] = std::array::from_fn(|v| load(&column[v * lanes..]));
-            for (jj, &b_value) in b_row.iter().enumerate() {
-                let bv = simd.splat_f32s(b_value);
-                for v in 0..V {
-                    acc[v][jj] = simd.mul_add_f32s(av[v], bv, acc[v][jj]);
-                }
-            }
+            fma_step(simd, acc, column, |jj| b_row[jj]);
         }
         p0 += steps;
-    }
-    for (v, row_acc) in acc.iter().enumerate() {
-        for (jj, value) in row_acc.iter().enumerate() {
-            let at = i + v * lanes + (j + jj) * m;
-            pulp::bytemuck::cast_slice_mut::<f32, u8>(&mut c[at..at + lanes])
-                .copy_from_slice(pulp::bytemuck::bytes_of(value));
-        }
     }
 }
 
@@ -426,7 +477,8 @@ mod tests {
             return;
         }
         let mut rng = hac_core::Rng::seed_from(7);
-        // Full blocks, leftover vectors, leftover scalar rows and columns, long reductions.
+        // Full blocks, leftover vectors, leftover scalar rows and columns, long reductions (more
+        // than one panel of the strided path).
         let shapes = [
             (64, 64, 256),
             (64, 5, 9),
@@ -449,10 +501,19 @@ mod tests {
                 rs: 1,
                 cs: lda,
             };
-            let b_data: Vec<f32> = (0..k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let b_data: Vec<f32> = (0..2 * k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            // Every other element of a column-major `2k x n` matrix: neither strides 1.
+            let b_strided = MatRef {
+                data: &b_data,
+                rows: k,
+                cols: n,
+                rs: 2,
+                cs: 2 * k,
+            };
             for b in [
-                MatRef::col_major(&b_data, k, n),
-                MatRef::col_major(&b_data, n, k).t(),
+                MatRef::col_major(&b_data[..k * n], k, n),
+                MatRef::col_major(&b_data[..k * n], n, k).t(),
+                b_strided,
             ] {
                 let mut c = vec![f32::NAN; m * n];
                 panel_gemm(&mut c, a, b);

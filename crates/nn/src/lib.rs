@@ -17,8 +17,10 @@
 //!   transitions with the low-level actor evaluated in batched forward passes.
 //! - [`policy`]: [`ExportedPolicy`], every level's actor in one self-contained file for use
 //!   elsewhere.
-//! - `kernels`: the matrix products (matrixmultiply's `sgemm`, reached through nalgebra) and
-//!   the thin-matrix loops; `checkpoint`: safetensors reading and writing.
+//! - `kernels`: the matrix products (a packing-free fused multiply-add kernel on AVX2 or
+//!   AVX-512, chosen at run time; matrixmultiply's `sgemm` through nalgebra elsewhere), the
+//!   thin-matrix loops, and the run-time SIMD dispatch of the elementwise loops;
+//!   `checkpoint`: safetensors reading and writing.
 //!
 //! Matrices are column-major with one sample per column, as in [`hac_core::Batch`].
 
