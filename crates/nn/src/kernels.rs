@@ -112,7 +112,33 @@ pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
 
 /// Whether [`panel_gemm`] runs here: on x86-64 with AVX2 and FMA, or AVX-512.
 pub(crate) fn has_fma_kernel() -> bool {
-    simd_extension() != "baseline"
+    #[cfg(target_arch = "x86_64")]
+    if matches!(*ARCH, pulp::Arch::V4(_) | pulp::Arch::V3(_)) {
+        return true;
+    }
+    false
+}
+
+/// [`sgemm`] for any `a`: where [`panel_gemm`] runs and `a`'s columns are not contiguous (a
+/// transposed view, as in an input gradient `W^T dz`), `a` is first copied column-major into
+/// `scratch` (at least `a.rows * a.cols` long), so that the kernel reads its columns in place.
+pub(crate) fn sgemm_via(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, scratch: &mut [f32]) {
+    if a.rs == 1 || !has_fma_kernel() {
+        sgemm(c, a, b);
+        return;
+    }
+    let copy = &mut scratch[..a.rows * a.cols];
+    vectorized(
+        #[inline(always)]
+        || {
+            for (p, column) in copy.chunks_exact_mut(a.rows).enumerate() {
+                for (i, value) in column.iter_mut().enumerate() {
+                    *value = a.data[i * a.rs + p * a.cs];
+                }
+            }
+        },
+    );
+    sgemm(c, MatRef::col_major(copy, a.rows, a.cols), b);
 }
 
 /// Rows of `c` per block of [`panel_gemm`], in SIMD vectors: 4 with 16 lanes (AVX-512, 64 rows,
@@ -128,8 +154,9 @@ const BLOCK_COLUMNS: usize = 4;
 /// `c = a * b` for `a` with contiguous columns (`a.rs == 1`), by register blocks of
 /// `block_vectors` SIMD vectors of rows by [`BLOCK_COLUMNS`] columns: for each `p`, the block's
 /// rows of column `p` of `a` are loaded once and multiplied by `b[p, j]` of each of the block's
-/// columns, accumulating with fused multiply-adds. Nothing is packed: `a`'s column is read in
-/// place, `b`'s elements one at a time, with any strides.
+/// columns, accumulating with fused multiply-adds. `a`'s columns are read in place, and so are
+/// `b`'s columns or rows where they are contiguous; only a `b` with neither is copied, a few
+/// rows at a time ([`PANEL_STEPS`]).
 ///
 /// Every element of `c` is the chain `fma(a[i, k-1], b[k-1, j], ... fma(a[i, 0], b[0, j], 0))`
 /// in order of `p`, whatever the SIMD width and the block it falls in (the rows left over at the
@@ -325,14 +352,12 @@ pub fn hidden_layer_sgemm_gflops(width: usize, batch: usize, min_seconds: f64) -
     let mut round = || {
         let w = MatRef::col_major(&w, width, width);
         sgemm(&mut out, w, MatRef::col_major(&x, width, batch));
-        // As an update does: the transpose made contiguous first where the FMA kernel runs.
-        let w_t = if has_fma_kernel() {
-            transpose(w.data, width, width, &mut wt);
-            MatRef::col_major(&wt, width, width)
-        } else {
-            w.t()
-        };
-        sgemm(&mut out, w_t, MatRef::col_major(&dz, width, batch));
+        sgemm_via(
+            &mut out,
+            w.t(),
+            MatRef::col_major(&dz, width, batch),
+            &mut wt,
+        );
         sgemm(
             &mut grad,
             MatRef::col_major(&dz, width, batch),

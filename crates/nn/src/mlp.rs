@@ -9,7 +9,7 @@ use hac_core::Rng;
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::{
-    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_sgemm, has_fma_kernel, sgemm, transpose, vectorized,
+    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_sgemm, sgemm, sgemm_via, transpose, vectorized,
 };
 
 /// Half-width of the output layer's initial weights and biases: small, so that the network
@@ -86,26 +86,12 @@ impl Dense {
         let (inp, out, r) = (self.inp, self.out, rows.len());
         // Columns `rows` of W: an `out x r` column-major block.
         let w_cols = &self.w[rows.start * out..rows.end * out];
-        if fits_sgemm(r, out, n) && has_fma_kernel() {
-            // The kernel wants the left operand's columns contiguous: W^T's are W's rows.
-            let wt = &mut packed[..inp * out];
-            vectorized(
-                #[inline(always)]
-                || transpose(&self.w, out, inp, wt),
-            );
-            let wt_rows = MatRef {
-                data: &wt[rows.start..],
-                rows: r,
-                cols: out,
-                rs: 1,
-                cs: inp,
-            };
-            sgemm(dx, wt_rows, MatRef::col_major(dz, out, n));
-        } else if fits_sgemm(r, out, n) {
-            sgemm(
+        if fits_sgemm(r, out, n) {
+            sgemm_via(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
                 MatRef::col_major(dz, out, n),
+                packed,
             );
         } else if r <= out {
             vectorized(
