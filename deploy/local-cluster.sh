@@ -8,10 +8,17 @@
 #   cargo build --release -p hac-learner-service -p hac-actor-service
 #   deploy/local-cluster.sh                        # 1, 2, 4, 8 actors, then scaling 1 -> 4 -> 8 -> 2
 #   deploy/local-cluster.sh --short                # 1 and 2 actors, tiny budget (the test's form)
+#   deploy/local-cluster.sh --seeds "0 1 2 3 4" --updates "40 20 10" --scale ""
+#                                                  # the grid: actors x updates per episode x seeds
 #
 # Options:
 #   --config FILE        config file for every process [deploy/hac.toml]
-#   --actors "1 2 4 8"   trainer counts, one run each
+#   --actors "1 2 4 8"   trainer counts, one run each (per seed and updates per episode)
+#   --seeds "0 1 ..."    seeds, one run each [the config's seed]; with more than one, or with
+#                        --updates, a summary table of the medians per actor count follows
+#   --updates "40 20"    the learner's updates per level per training episode
+#                        (updates_per_episode, the rate limiter's ratio), one run each [the
+#                        config's]
 #   --scale "1 4 8 2"    trainer counts of the phases of the scaling run ("" to skip it)
 #   --phase-seconds S    length of each scaling phase [20]
 #   --episodes N         the learner's episode budget [the config's]
@@ -39,6 +46,8 @@ scale_counts="1 4 8 2"
 phase_seconds=20
 episodes=""
 eval_every=50
+seeds=""
+updates=""
 sets=()
 timeout=900
 out="runs/local-cluster"
@@ -47,6 +56,8 @@ while [[ $# -gt 0 ]]; do
   case "$1" in
     --config) config=$2; shift 2 ;;
     --actors) actor_counts=$2; shift 2 ;;
+    --seeds) seeds=$2; shift 2 ;;
+    --updates) updates=$2; shift 2 ;;
     --scale) scale_counts=$2; shift 2 ;;
     --phase-seconds) phase_seconds=$2; shift 2 ;;
     --episodes) episodes=$2; shift 2 ;;
@@ -187,30 +198,64 @@ curve_stats() {
     }' "$1"
 }
 
+# median TOTAL VALUE...: the median of TOTAL values of which those given are the ones that exist;
+# the missing ones (runs that never reached 90%) count as the largest, so the median is "never"
+# once half of them are missing.
+median() {
+  local total=$1; shift
+  printf '%s\n' "$@" | awk -v total="$total" '
+    NF { v[++k] = $1 } END {
+      for (i = k + 1; i <= total; i++) v[i] = 1e300
+      for (i = 1; i <= total; i++) for (j = i + 1; j <= total; j++) if (v[j] + 0 < v[i] + 0) { t = v[i]; v[i] = v[j]; v[j] = t }
+      m = v[int((total + 1) / 2)]; print (m + 0 >= 1e300 ? "never" : m) }'
+}
+
+# The grid: every updates-per-episode value x actor count x seed ("" keeps the config's).
+grid=$([[ -n "$seeds$updates" ]] && echo 1 || true)
 rows=()
-for n in $actor_counts; do
-  dir="$out/actors-$n"
-  echo "== $n trainer(s): $dir" >&2
-  start_learner "$dir" "$episodes"
-  start_actor "$dir" evaluator --role evaluator --eval-every "$eval_every"
-  run_pids=("$actor_pid")
-  for ((i = 0; i < n; i++)); do
-    start_actor "$dir" "trainer-$i" --role trainer
-    run_pids+=("$actor_pid")
+summary_rows=()
+for u in ${updates:-config}; do
+  for n in $actor_counts; do
+    reached=0; e90s=(); t90s=(); walls=()
+    for seed in ${seeds:-config}; do
+      name="actors-$n"
+      run_flags=()
+      what=""
+      [[ $u != config ]] && { name+="-upe$u"; run_flags+=(--set "updates_per_episode=$u"); what+=", $u updates per episode"; }
+      [[ $seed != config ]] && { name+="-seed$seed"; run_flags+=(--seed "$seed"); what+=", seed $seed"; }
+      dir="$out/$name"
+      echo "== $n trainer(s)$what: $dir" >&2
+      start_learner "$dir" "$episodes" "${run_flags[@]}"
+      start_actor "$dir" evaluator --role evaluator --eval-every "$eval_every"
+      run_pids=("$actor_pid")
+      for ((i = 0; i < n; i++)); do
+        start_actor "$dir" "trainer-$i" --role trainer
+        run_pids+=("$actor_pid")
+      done
+      watch_run "$dir" "$timeout" "${run_pids[@]}"
+      for pid in "${run_pids[@]}"; do
+        status=0; wait_for "$pid" 60 || status=$?
+        [[ $status -eq 0 ]] || { echo "local-cluster.sh: an actor of the $n-trainer run ended with status $status" >&2; exit 1; }
+      done
+      summary="$dir/run/summary.json"
+      wall=$(json_number "$summary" wall_time_s)
+      steps=$(json_number "$summary" env_steps)
+      transitions=$(json_number "$summary" transitions)
+      e90=$(json_number "$summary" episodes_to_90)
+      read -r _ updates_per_s t90 < <(curve_stats "$dir/run/curve.csv" 0 1e18)
+      row=$(awk -v n="$n" -v e="$(json_number "$summary" episodes_ingested)" -v s="$steps" -v tr="$transitions" \
+        -v w="$wall" -v u="$updates_per_s" -v t90="$t90" -v e90="$e90" \
+        'BEGIN { printf "| %d | %s | %.0f | %.0f | %s | %s | %s | %.1f |", n, e, s / w, tr / w, u, t90, e90, w }')
+      [[ -n "$grid" ]] && row="| $u | $seed $row"
+      rows+=("$row")
+      walls+=("$wall")
+      if [[ "$e90" != "-" ]]; then
+        reached=$((reached + 1)); e90s+=("$e90"); t90s+=("$t90")
+      fi
+    done
+    count=$(wc -w <<< "${seeds:-x}")
+    summary_rows+=("| $u | $n | $(median "$count" "${e90s[@]+"${e90s[@]}"}") | $(median "$count" "${t90s[@]+"${t90s[@]}"}") | $reached of $count | $(printf '%s\n' "${walls[@]}" | awk '{ s += $1 } END { printf "%.0f", s }') |")
   done
-  watch_run "$dir" "$timeout" "${run_pids[@]}"
-  for pid in "${run_pids[@]}"; do
-    status=0; wait_for "$pid" 60 || status=$?
-    [[ $status -eq 0 ]] || { echo "local-cluster.sh: an actor of the $n-trainer run ended with status $status" >&2; exit 1; }
-  done
-  summary="$dir/run/summary.json"
-  wall=$(json_number "$summary" wall_time_s)
-  steps=$(json_number "$summary" env_steps)
-  transitions=$(json_number "$summary" transitions)
-  read -r _ updates_per_s t90 < <(curve_stats "$dir/run/curve.csv" 0 1e18)
-  rows+=("$(awk -v n="$n" -v e="$(json_number "$summary" episodes_ingested)" -v s="$steps" -v tr="$transitions" \
-    -v w="$wall" -v u="$updates_per_s" -v t90="$t90" -v e90="$(json_number "$summary" episodes_to_90)" \
-    'BEGIN { printf "| %d | %s | %.0f | %.0f | %s | %s | %s | %.1f |", n, e, s / w, tr / w, u, t90, e90, w }')")
 done
 
 scale_rows=()
@@ -259,9 +304,23 @@ fi
 echo
 echo "Each run to the config's end (stop_at or episode budget); rates over the whole run."
 echo
-echo "| trainers | episodes | env steps/s | transitions/s ingested | updates/s | time to 90% (s) | episodes to 90% | wall time (s) |"
-echo "| --- | --- | --- | --- | --- | --- | --- | --- |"
+if [[ -n "$grid" ]]; then
+  echo "| updates per episode | seed | trainers | episodes | env steps/s | transitions/s ingested | updates/s | time to 90% (s) | episodes to 90% | wall time (s) |"
+  echo "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+else
+  echo "| trainers | episodes | env steps/s | transitions/s ingested | updates/s | time to 90% (s) | episodes to 90% | wall time (s) |"
+  echo "| --- | --- | --- | --- | --- | --- | --- | --- |"
+fi
 printf '%s\n' "${rows[@]}"
+if [[ -n "$grid" ]]; then
+  echo
+  echo "Per updates-per-episode value and trainer count, over the seeds: the median of episodes and"
+  echo "of seconds to the first test round >= 90% (a run that never got there counts as the slowest)."
+  echo
+  echo "| updates per episode | trainers | episodes to 90% (median) | time to 90% (s, median) | runs that reached 90% | wall time of the runs (s, sum) |"
+  echo "| --- | --- | --- | --- | --- | --- |"
+  printf '%s\n' "${summary_rows[@]}"
+fi
 if (( ${#scale_rows[@]} > 0 )); then
   echo
   echo "One run, trainers scaled while it trains (rates between the evaluations inside each phase,"

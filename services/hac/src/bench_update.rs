@@ -7,7 +7,9 @@
 //! same initial learner (a clone, with its own worker threads), warms up, then updates for
 //! `--seconds`. The update's work is counted from the layer shapes
 //! ([`hac_nn::LearnerConfig::update_flops`]); the `sgemm` peak is measured in the same
-//! invocation on the hidden layers' three products ([`hac_nn::hidden_layer_sgemm_gflops`]).
+//! invocation on the hidden layers' three products ([`hac_nn::hidden_layer_sgemm_gflops`]), and
+//! for each thread count above 1 as that many independent copies at once: the cores' own
+//! scaling on work that shares nothing, the ceiling of the update's.
 
 use std::time::Instant;
 
@@ -43,6 +45,11 @@ pub struct ThreadsRow {
     pub of_sgemm_peak: f64,
     /// Updates per second over those of the first row.
     pub speedup: f64,
+    /// What this many cores deliver together on independent work of the update's shapes:
+    /// `threads` copies of the single-core `sgemm` run at once, each on its own thread, their
+    /// summed GFLOP/s over one copy's alone (measured just before). The update's `speedup`
+    /// cannot beat it by more than the machine's drift.
+    pub sgemm_scaling: f64,
 }
 
 /// `hac bench update` result.
@@ -87,6 +94,20 @@ fn random_batch(config: &LearnerConfig, len: usize, rng: &mut Rng) -> Batch {
         };
     }
     b
+}
+
+/// The summed GFLOP/s of `threads` copies of [`hac_nn::hidden_layer_sgemm_gflops`] run at
+/// once, each on its own thread for at least `seconds`.
+fn concurrent_sgemm_gflops(width: usize, batch: usize, threads: usize, seconds: f64) -> f64 {
+    std::thread::scope(|scope| {
+        let copies: Vec<_> = (0..threads)
+            .map(|_| scope.spawn(move || hac_nn::hidden_layer_sgemm_gflops(width, batch, seconds)))
+            .collect();
+        copies
+            .into_iter()
+            .map(|copy| copy.join().expect("sgemm thread panicked"))
+            .sum()
+    })
 }
 
 /// Runs the bench.
@@ -157,6 +178,15 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
         let speedup = rows
             .first()
             .map_or(1.0, |first| per_second * first.ms_per_update / 1e3);
+        // One copy alone, then `t` at once, back to back: the machine's speed drifts over
+        // seconds, so the ratio compares the two under the same conditions.
+        let sgemm_scaling = if t == 1 || sgemm_peak_gflops.is_nan() {
+            1.0
+        } else {
+            let seconds = bench.seconds.min(2.0);
+            let alone = concurrent_sgemm_gflops(widest, batch_size, 1, seconds);
+            concurrent_sgemm_gflops(widest, batch_size, t, seconds) / alone
+        };
         rows.push(ThreadsRow {
             threads: t,
             updates,
@@ -164,6 +194,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             gflops,
             of_sgemm_peak: gflops / sgemm_peak_gflops,
             speedup,
+            sgemm_scaling,
         });
     }
     Ok(UpdateReport {
@@ -210,18 +241,26 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.simd,
         r.cores
     );
-    println!("| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup |");
-    println!("| --- | --- | --- | --- | --- | --- |");
+    println!(
+        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
     for row in &r.rows {
         println!(
-            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x |",
+            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x |",
             row.threads,
             row.ms_per_update,
             1e3 / row.ms_per_update,
             row.gflops,
             row.of_sgemm_peak,
-            row.speedup
+            row.speedup,
+            row.sgemm_scaling
         );
     }
+    println!(
+        "(sgemm copies at once: that many independent single-core sgemm runs at the same time, \
+         their summed rate over one alone: what the cores give together, the ceiling of the \
+         speedup)"
+    );
     Ok(())
 }

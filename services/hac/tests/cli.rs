@@ -1033,6 +1033,10 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
         );
     }
     assert_eq!(rows[0]["speedup"], 1.0, "{report}");
+    // Two sgemm copies at once against one alone: a measured rate, whatever the machine's load.
+    assert_eq!(rows[0]["sgemm_scaling"], 1.0, "{report}");
+    let scaling = rows[1]["sgemm_scaling"].as_f64().unwrap();
+    assert!(scaling.is_finite() && scaling > 0.1, "{report}");
 
     let o = hac(&["bench", "update", "--level", "2"]);
     assert!(!o.status.success());

@@ -71,3 +71,88 @@ fn the_local_cluster_script_runs_its_short_form() {
     }
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// The grid form: every updates-per-episode value x trainer count x seed is a run of its own,
+/// with the seed and the learner's ratio applied (read back from each run's config.toml), one
+/// row per run and one summary row per ratio and trainer count.
+#[test]
+fn the_local_cluster_script_runs_a_grid_of_seeds_and_update_ratios() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = std::env::temp_dir().join(format!("hac-cluster-grid-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let output = Command::new("bash")
+        .arg(repo.join("deploy/local-cluster.sh"))
+        .args([
+            "--short",
+            "--actors",
+            "1",
+            "--seeds",
+            "3 4",
+            "--updates",
+            "10 5",
+        ])
+        .args(["--scale", "", "--timeout", "300", "--out"])
+        .arg(&out)
+        .env("HAC_BIN", env!("CARGO_BIN_EXE_hac"))
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("bash runs");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "local-cluster.sh grid failed ({}):\n{stdout}\n{stderr}",
+        output.status
+    );
+    let rows: Vec<Vec<&str>> = stdout
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| ---"))
+        .map(|l| l.trim_matches('|').split('|').map(str::trim).collect())
+        .collect();
+    // | updates per episode | seed | trainers | episodes | ... | wall time |
+    let runs: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 10).collect();
+    let cells: Vec<(&str, &str, &str)> = runs[1..].iter().map(|r| (r[0], r[1], r[2])).collect();
+    assert_eq!(
+        cells,
+        [
+            ("10", "3", "1"),
+            ("10", "4", "1"),
+            ("5", "3", "1"),
+            ("5", "4", "1")
+        ],
+        "one run per ratio and seed, in that order:\n{stdout}"
+    );
+    for row in &runs[1..] {
+        let episodes: f64 = row[3].parse().expect("episodes");
+        assert!(
+            episodes >= 20.0,
+            "the budget of 20 episodes was trained: {row:?}"
+        );
+    }
+    for (u, seed) in [(10, 3), (10, 4), (5, 3), (5, 4)] {
+        let config = out.join(format!("actors-1-upe{u}-seed{seed}/run/config.toml"));
+        let config = std::fs::read_to_string(&config)
+            .unwrap_or_else(|e| panic!("{}: {e}", config.display()));
+        assert!(config.contains(&format!("\nseed = {seed}\n")), "{config}");
+        assert!(
+            config.contains(&format!("\nupdates_per_episode = {u}\n")),
+            "{config}"
+        );
+    }
+    // | updates per episode | trainers | e90 | t90 | reached | wall sum |: 20 episodes never
+    // reach 90%, so every median is "never".
+    let summary: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 6).collect();
+    let cells: Vec<(&str, &str, &str, &str, &str)> = summary[1..]
+        .iter()
+        .map(|r| (r[0], r[1], r[2], r[3], r[4]))
+        .collect();
+    assert_eq!(
+        cells,
+        [
+            ("10", "1", "never", "never", "0 of 2"),
+            ("5", "1", "never", "never", "0 of 2")
+        ],
+        "{stdout}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
