@@ -143,7 +143,8 @@ pub fn run(grid: Grid) -> Result<()> {
     let started = Instant::now();
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
-    let results: Mutex<Vec<Result<Finished>>> = Mutex::new(Vec::new());
+    // Each result with its run's index in `runs`.
+    let results: Mutex<Vec<(usize, Result<Finished>)>> = Mutex::new(Vec::new());
     std::thread::scope(|scope| {
         for _ in 0..grid.jobs.min(runs.len()) {
             scope.spawn(|| {
@@ -170,21 +171,32 @@ pub fn run(grid: Grid) -> Result<()> {
                                 .map_or("never".into(), |e| format!("after {e} episodes")),
                             f.summary.wall_time_s
                         ),
-                        Err(e) => println!("[{n}/{}] failed: {e:#}", runs.len()),
+                        Err(e) => {
+                            println!("[{n}/{}] {} failed: {e:#}", runs.len(), config.run_name())
+                        }
                     }
                     results
                         .lock()
                         .expect("no panics while holding the lock")
-                        .push(result);
+                        .push((i, result));
                 }
             });
         }
     });
-    let finished: Vec<Finished> = results
-        .into_inner()
-        .expect("workers finished")
-        .into_iter()
-        .collect::<Result<_>>()?;
+    // A run that failed leaves the others' summary standing: it is left out of the means and
+    // named below the tables, and the command fails once the summary is written.
+    let mut finished: Vec<Finished> = Vec::new();
+    let mut failed: Vec<String> = Vec::new();
+    for (i, result) in results.into_inner().expect("workers finished") {
+        match result {
+            Ok(f) => finished.push(f),
+            Err(e) => failed.push(format!("{}: {e:#}", runs[i].run_name())),
+        }
+    }
+    failed.sort();
+    if finished.is_empty() && !failed.is_empty() {
+        bail!("every run failed:\n{}", failed.join("\n"));
+    }
 
     // Name the algorithm wherever it is not HAC alone.
     let named = grid.algos != [Algo::Hac];
@@ -200,6 +212,7 @@ pub fn run(grid: Grid) -> Result<()> {
             "training episodes",
             &groups
                 .iter()
+                .filter(|(_, _, runs)| !runs.is_empty())
                 .map(|(algo, k, runs)| series(*algo, *k, named, runs))
                 .collect::<Vec<_>>(),
         );
@@ -210,6 +223,15 @@ pub fn run(grid: Grid) -> Result<()> {
         tables.push_str(&summary_table(env, named, &groups));
         tables.push('\n');
     }
+    if !failed.is_empty() {
+        tables.push_str(&format!(
+            "Failed runs, left out of the tables and plots above:\n\n{}\n",
+            failed
+                .iter()
+                .map(|f| format!("- {f}\n"))
+                .collect::<String>()
+        ));
+    }
     let md_path = grid.out.join("summary.md");
     std::fs::write(&md_path, &tables).with_context(|| format!("writing {}", md_path.display()))?;
     println!("{tables}");
@@ -219,6 +241,14 @@ pub fn run(grid: Grid) -> Result<()> {
         svgs.join(", "),
         md_path.display()
     );
+    if !failed.is_empty() {
+        bail!(
+            "{} of {} runs failed (the summary covers the others): {}",
+            failed.len(),
+            runs.len(),
+            failed.join("; ")
+        );
+    }
     Ok(())
 }
 

@@ -413,6 +413,51 @@ fn env_rollout_steps_from_a_set_state_and_rejects_bad_lines() {
 }
 
 #[test]
+fn an_experiment_summarises_the_runs_that_finished_when_one_fails() {
+    // A file where seed 1's run directory would go: that run fails at its start, the other
+    // runs to its end, and the summary covers it and names the failed one.
+    let out = scratch("experiment-failed-run");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("mountain-car-1l-seed1"), "not a directory").unwrap();
+    let o = hac(&[
+        "experiment",
+        "--env",
+        "mountain-car",
+        "--levels",
+        "1",
+        "--seeds",
+        "2",
+        "--episodes",
+        "10",
+        "--set",
+        "test_episodes=3",
+        "--jobs",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success(), "a failed run fails the command");
+    assert!(
+        text(&o.stderr).contains("1 of 2 runs failed")
+            && text(&o.stderr).contains("mountain-car-1l-seed1"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(out.join("mountain-car-1l-seed0/curve.csv").is_file());
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains("| 1 | 1 |"),
+        "one seed in the means: {summary}"
+    );
+    assert!(
+        summary.contains("Failed runs") && summary.contains("- mountain-car-1l-seed1: "),
+        "{summary}"
+    );
+    let svg = std::fs::read_to_string(out.join("mountain-car.svg")).unwrap();
+    assert_eq!(svg.matches("<polyline").count(), 1, "{svg}");
+}
+
+#[test]
 fn experiment_runs_the_grid_and_summarises_it() {
     let out = scratch("experiment");
     let out_s = out.to_str().unwrap();
