@@ -6,34 +6,48 @@
 use std::path::Path;
 use std::process::Command;
 
-#[test]
-fn the_local_cluster_script_runs_its_short_form() {
+/// Runs deploy/local-cluster.sh with `args` into the fresh directory `out` (and `--timeout 300`),
+/// with the `hac` binary Cargo built; fails unless it exits 0. Returns its stdout and the cells
+/// of its markdown table rows (headers included, separators left out).
+fn run_script(out: &Path, args: &[&str]) -> (String, Vec<Vec<String>>) {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let out = std::env::temp_dir().join(format!("hac-cluster-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(out);
     let output = Command::new("bash")
         .arg(repo.join("deploy/local-cluster.sh"))
-        .args(["--short", "--timeout", "300", "--out"])
-        .arg(&out)
+        .args(args)
+        .args(["--timeout", "300", "--out"])
+        .arg(out)
         .env("HAC_BIN", env!("CARGO_BIN_EXE_hac"))
         .env_remove("RUST_LOG")
         .output()
         .expect("bash runs");
-    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
         output.status.success(),
-        "local-cluster.sh --short failed ({}):\n{stdout}\n{stderr}",
+        "local-cluster.sh {args:?} failed ({}):\n{stdout}\n{stderr}",
         output.status
     );
-
-    // | trainers | episodes | env steps/s | transitions/s | updates/s | t90 | e90 | wall |
-    let rows: Vec<Vec<&str>> = stdout
+    let rows = stdout
         .lines()
         .filter(|l| l.starts_with("| ") && !l.starts_with("| ---"))
-        .map(|l| l.trim_matches('|').split('|').map(str::trim).collect())
+        .map(|l| {
+            l.trim_matches('|')
+                .split('|')
+                .map(|c| c.trim().to_string())
+                .collect()
+        })
         .collect();
-    let runs: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 8).collect();
+    (stdout, rows)
+}
+
+#[test]
+fn the_local_cluster_script_runs_its_short_form() {
+    let out = std::env::temp_dir().join(format!("hac-cluster-test-{}", std::process::id()));
+    let (stdout, rows) = run_script(&out, &["--short"]);
+
+    // | trainers | episodes | env steps/s | transitions/s | updates/s | t90 | e90 | wall |
+    let runs: Vec<&Vec<String>> = rows.iter().filter(|r| r.len() == 8).collect();
     assert_eq!(runs.len(), 3, "a header and two runs:\n{stdout}");
     for (row, trainers) in runs[1..].iter().zip(["1", "2"]) {
         assert_eq!(row[0], trainers, "{stdout}");
@@ -55,9 +69,9 @@ fn the_local_cluster_script_runs_its_short_form() {
             "transitions/s >= env steps/s: {row:?}"
         );
     }
-    let phases: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 5).collect();
+    let phases: Vec<&Vec<String>> = rows.iter().filter(|r| r.len() == 5).collect();
     assert_eq!(phases.len(), 4, "a header and three phases:\n{stdout}");
-    let trainers: Vec<&str> = phases[1..].iter().map(|r| r[1]).collect();
+    let trainers: Vec<&str> = phases[1..].iter().map(|r| r[1].as_str()).collect();
     assert_eq!(trainers, ["1", "2", "1"], "{stdout}");
     // The scaled run: an evaluator and two distinct trainers registered.
     let log = std::fs::read_to_string(out.join("scaling/learner.log")).unwrap();
@@ -77,12 +91,10 @@ fn the_local_cluster_script_runs_its_short_form() {
 /// row per run and one summary row per ratio and trainer count.
 #[test]
 fn the_local_cluster_script_runs_a_grid_of_seeds_and_update_ratios() {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let out = std::env::temp_dir().join(format!("hac-cluster-grid-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let output = Command::new("bash")
-        .arg(repo.join("deploy/local-cluster.sh"))
-        .args([
+    let (stdout, rows) = run_script(
+        &out,
+        &[
             "--short",
             "--actors",
             "1",
@@ -90,28 +102,16 @@ fn the_local_cluster_script_runs_a_grid_of_seeds_and_update_ratios() {
             "3 4",
             "--updates",
             "10 5",
-        ])
-        .args(["--scale", "", "--timeout", "300", "--out"])
-        .arg(&out)
-        .env("HAC_BIN", env!("CARGO_BIN_EXE_hac"))
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("bash runs");
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "local-cluster.sh grid failed ({}):\n{stdout}\n{stderr}",
-        output.status
+            "--scale",
+            "",
+        ],
     );
-    let rows: Vec<Vec<&str>> = stdout
-        .lines()
-        .filter(|l| l.starts_with("| ") && !l.starts_with("| ---"))
-        .map(|l| l.trim_matches('|').split('|').map(str::trim).collect())
-        .collect();
     // | updates per episode | seed | trainers | episodes | ... | wall time |
-    let runs: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 10).collect();
-    let cells: Vec<(&str, &str, &str)> = runs[1..].iter().map(|r| (r[0], r[1], r[2])).collect();
+    let runs: Vec<&Vec<String>> = rows.iter().filter(|r| r.len() == 10).collect();
+    let cells: Vec<(&str, &str, &str)> = runs[1..]
+        .iter()
+        .map(|r| (r[0].as_str(), r[1].as_str(), r[2].as_str()))
+        .collect();
     assert_eq!(
         cells,
         [
@@ -141,10 +141,18 @@ fn the_local_cluster_script_runs_a_grid_of_seeds_and_update_ratios() {
     }
     // | updates per episode | trainers | e90 | t90 | reached | wall sum |: 20 episodes never
     // reach 90%, so every median is "never".
-    let summary: Vec<&Vec<&str>> = rows.iter().filter(|r| r.len() == 6).collect();
+    let summary: Vec<&Vec<String>> = rows.iter().filter(|r| r.len() == 6).collect();
     let cells: Vec<(&str, &str, &str, &str, &str)> = summary[1..]
         .iter()
-        .map(|r| (r[0], r[1], r[2], r[3], r[4]))
+        .map(|r| {
+            (
+                r[0].as_str(),
+                r[1].as_str(),
+                r[2].as_str(),
+                r[3].as_str(),
+                r[4].as_str(),
+            )
+        })
         .collect();
     assert_eq!(
         cells,
