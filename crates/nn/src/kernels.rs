@@ -1,11 +1,14 @@
 //! Matrix kernels on column-major `f32` slices.
 //!
-//! Every large product goes to matrixmultiply's `sgemm` (AVX2/FMA, chosen at run time). This crate
-//! forbids `unsafe`, so it reaches `sgemm` through nalgebra's `gemm` on strided views: nalgebra
-//! forwards the views' strides unchanged, which makes transposed operands free. nalgebra only does
-//! so when every dimension is at least 6; the thin products below that (the first layer of a
-//! low-dimensional input, the output layer, single samples) use the vector loops here, written so
-//! that the compiler vectorises their inner loop.
+//! Products go to [`panel_gemm`], this crate's kernel, wherever the CPU has FMA (AVX2 or
+//! AVX-512, chosen at run time): every product of at least 6 in each dimension, and, on a
+//! batch, the thin ones with at least [`PANEL_MIN_ROWS`] rows (a first layer of a few inputs
+//! and its weight gradient, the output layer's input and weight gradients). Elsewhere the large
+//! products go to matrixmultiply's `sgemm`: this crate forbids `unsafe`, so it reaches it
+//! through nalgebra's `gemm` on strided views (nalgebra forwards the strides unchanged, which
+//! makes transposed operands free, when every dimension is at least 6). What is left (single
+//! samples, the one-row output of the output layer, thin products on a CPU without FMA) runs in
+//! the vector loops here, written so that the compiler vectorises their inner loop.
 //!
 //! The build targets the baseline x86-64 (SSE2), so that one binary runs on every machine; the
 //! loops that are not products run through [`vectorized`], which compiles them again for AVX2
@@ -57,6 +60,20 @@ pub(crate) fn fits_sgemm(m: usize, k: usize, n: usize) -> bool {
     m >= SGEMM_MIN_DIM && k >= SGEMM_MIN_DIM && n >= SGEMM_MIN_DIM
 }
 
+/// The fewest rows of `c` for which a product whose other dimensions are thin (a network's
+/// first layer of a few inputs, the weight gradient of such a layer, the input gradient of a
+/// one-output layer) still goes to [`panel_gemm`]: one AVX-512 vector, two AVX2 ones. Its
+/// register blocks hold their accumulators whatever `k` and the column count, where the vector
+/// loops below would read and write a column of `c` in memory once per step.
+pub(crate) const PANEL_MIN_ROWS: usize = 16;
+
+/// Whether an `m`-row product with thin other dimensions goes to [`sgemm`] all the same: where
+/// [`panel_gemm`] runs and `m >= PANEL_MIN_ROWS` (the caller's `a` must have contiguous
+/// columns, or go through [`sgemm_via`]).
+pub(crate) fn fits_panel(m: usize) -> bool {
+    m >= PANEL_MIN_ROWS && has_fma_kernel()
+}
+
 /// A read-only strided matrix: element `(i, j)` is `data[i * rs + j * cs]`.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct MatRef<'a> {
@@ -98,7 +115,7 @@ impl<'a> MatRef<'a> {
 /// [`panel_gemm`], this crate's kernel for the thin shapes of these networks, which needs no
 /// packing; otherwise in matrixmultiply's `sgemm`.
 pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
-    debug_assert!(fits_sgemm(a.rows, a.cols, b.cols));
+    debug_assert!(fits_sgemm(a.rows, a.cols, b.cols) || (a.rs == 1 && fits_panel(a.rows)));
     debug_assert_eq!(a.cols, b.rows);
     if a.rs == 1 && has_fma_kernel() {
         panel_gemm(c, a, b);

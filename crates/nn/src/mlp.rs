@@ -9,7 +9,8 @@ use hac_core::Rng;
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::{
-    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_sgemm, sgemm, sgemm_via, transpose, vectorized,
+    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_panel, fits_sgemm, sgemm, sgemm_via, transpose,
+    vectorized,
 };
 
 /// Half-width of the output layer's initial weights and biases: small, so that the network
@@ -38,7 +39,8 @@ impl Dense {
     /// `z = W x` (no bias) for the `n` columns of `x`.
     fn mul(&self, x: &[f32], n: usize, z: &mut [f32], packed: &mut [f32]) {
         let (inp, out) = (self.inp, self.out);
-        if fits_sgemm(out, inp, n) {
+        // A first layer of a few inputs too, on a batch (a single sample takes the vector loop).
+        if fits_sgemm(out, inp, n) || (fits_panel(out) && n >= SGEMM_MIN_DIM) {
             sgemm(
                 z,
                 MatRef::col_major(&self.w, out, inp),
@@ -86,7 +88,8 @@ impl Dense {
         let (inp, out, r) = (self.inp, self.out, rows.len());
         // Columns `rows` of W: an `out x r` column-major block.
         let w_cols = &self.w[rows.start * out..rows.end * out];
-        if fits_sgemm(r, out, n) {
+        // The input gradient of a layer of a few outputs too (the output layer), on a batch.
+        if fits_sgemm(r, out, n) || (fits_panel(r) && n >= SGEMM_MIN_DIM) {
             sgemm_via(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
@@ -125,11 +128,25 @@ impl Dense {
     /// Sets this gradient layer's weights to `dz x^T`, summed over the `n` samples.
     fn set_weight_grad(&mut self, dz: &[f32], x: &[f32], n: usize, packed: &mut [f32]) {
         let (inp, out) = (self.inp, self.out);
-        if fits_sgemm(out, n, inp) {
+        // The weight gradient of a first layer of a few inputs too.
+        if fits_sgemm(out, n, inp) || (fits_panel(out) && n >= SGEMM_MIN_DIM) {
             sgemm(
                 &mut self.w,
                 MatRef::col_major(dz, out, n),
                 MatRef::col_major(x, inp, n).t(),
+            );
+        } else if out < inp && fits_panel(inp) && n >= SGEMM_MIN_DIM {
+            // Few outputs (the output layer): `W^T = x dz^T` in the kernel, transposed once.
+            let gt = &mut packed[..inp * out];
+            sgemm(
+                gt,
+                MatRef::col_major(x, inp, n),
+                MatRef::col_major(dz, out, n).t(),
+            );
+            let w = &mut self.w;
+            vectorized(
+                #[inline(always)]
+                || transpose(gt, inp, out, w),
             );
         } else if inp <= out {
             let w = &mut self.w;
@@ -707,6 +724,16 @@ mod tests {
         check_gradients(&[9, 3, 4], 7, 0..9, 3);
         // One sample, as in `ActorNet::act`.
         check_gradients(&[4, 6, 6, 2], 1, 2..4, 4);
+    }
+
+    #[test]
+    fn gradients_through_thin_layers_in_the_kernel() {
+        // A batch through a first layer of 3 inputs and an output layer of 1 output, 20 and 17
+        // wide: where the CPU has FMA, the first layer's product and weight gradient and the
+        // output layer's input and weight gradients go to the kernel (at least `PANEL_MIN_ROWS`
+        // rows; 20 and 17 leave rows over a whole vector), elsewhere to the vector loops.
+        check_gradients(&[3, 20, 17, 1], 9, 0..3, 5);
+        check_gradients(&[2, 33, 2], 6, 1..2, 6);
     }
 
     #[test]
