@@ -26,8 +26,8 @@
 //! Opt-in (`HAC_TEST_TOOLS=1`, set by `.ci/run`): it needs docker, `docker compose` v2, root and
 //! debootstrap (for the base image, unless `hac-base:bookworm` is there). Every stack has its
 //! own Compose project name, ports and scratch directory, and everything the test creates
-//! (containers, networks, volumes, the image and, if the test imported it, the base image) is
-//! removed when it ends, passing or failing. Each scenario prints its figures.
+//! (containers, networks, volumes, the image and its own tag of the base image) is removed when
+//! it ends, passing or failing. Each scenario prints its figures.
 
 use std::io::{Read as _, Write as _};
 use std::path::{Path, PathBuf};
@@ -152,15 +152,16 @@ fn wait_for<T>(
 // ---------------------------------------------------------------------------------------------
 // The image
 
-/// The image the test built (and the base, if the test imported it): removed on drop.
+/// The image the test built and the base it built on, under this process's own tags: removed on
+/// drop.
 struct Image {
     tag: String,
-    base: Option<String>,
+    base: String,
 }
 
 impl Drop for Image {
     fn drop(&mut self) {
-        for image in std::iter::once(&self.tag).chain(&self.base) {
+        for image in [&self.tag, &self.base] {
             let _ = Command::new("docker")
                 .args(["image", "rm", "--force", image])
                 .output();
@@ -170,21 +171,29 @@ impl Drop for Image {
 
 fn build_image() -> Image {
     let tag = format!("hac-cluster-test-{}:latest", std::process::id());
-    let base = "hac-base:bookworm";
+    // The base under a tag of this process's own, so that test processes sharing a Docker engine
+    // never remove the base another one is building on: the shared `hac-base:bookworm` tagged
+    // again when it is there (removing a second tag leaves the image and its other tags), else
+    // imported by build-local.sh under this tag alone.
+    let shared = "hac-base:bookworm";
+    let base = format!("hac-base:test-{}", std::process::id());
     let had_base = Command::new("docker")
-        .args(["image", "inspect", base])
+        .args(["image", "inspect", shared])
         .output()
         .unwrap()
         .status
         .success();
+    if had_base {
+        run(Command::new("docker").args(["tag", shared, &base]));
+    }
     let image = Image {
         tag: tag.clone(),
-        base: (!had_base).then(|| base.to_string()),
+        base: base.clone(),
     };
     let started = Instant::now();
     let output = run(Command::new(repo().join("deploy/docker/build-local.sh"))
         .env("HAC_IMAGE", &tag)
-        .env("HAC_BASE_IMAGE", base));
+        .env("HAC_BASE_IMAGE", &base));
     eprint!("{output}");
     eprintln!(
         "image: {tag} built in {:.1} s (base {})",
