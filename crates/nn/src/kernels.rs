@@ -67,11 +67,12 @@ pub(crate) fn fits_sgemm(m: usize, k: usize, n: usize) -> bool {
 /// loops below would read and write a column of `c` in memory once per step.
 pub(crate) const PANEL_MIN_ROWS: usize = 16;
 
-/// Whether an `m`-row product with thin other dimensions goes to [`sgemm`] all the same: where
-/// [`panel_gemm`] runs and `m >= PANEL_MIN_ROWS` (the caller's `a` must have contiguous
-/// columns, or go through [`sgemm_via`]).
-pub(crate) fn fits_panel(m: usize) -> bool {
-    m >= PANEL_MIN_ROWS && has_fma_kernel()
+/// Whether an `m`-row product over a batch of `batch` samples goes to [`sgemm`] even though its
+/// other dimensions are thin: where [`panel_gemm`] runs, `m >= PANEL_MIN_ROWS` and the batch is
+/// at least [`SGEMM_MIN_DIM`] (a single sample keeps the vector loops). The caller's `a` must
+/// have contiguous columns, or go through [`sgemm_via`].
+pub(crate) fn fits_panel(m: usize, batch: usize) -> bool {
+    m >= PANEL_MIN_ROWS && batch >= SGEMM_MIN_DIM && has_fma_kernel()
 }
 
 /// A read-only strided matrix: element `(i, j)` is `data[i * rs + j * cs]`.
@@ -115,7 +116,10 @@ impl<'a> MatRef<'a> {
 /// [`panel_gemm`], this crate's kernel for the thin shapes of these networks, which needs no
 /// packing; otherwise in matrixmultiply's `sgemm`.
 pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
-    debug_assert!(fits_sgemm(a.rows, a.cols, b.cols) || (a.rs == 1 && fits_panel(a.rows)));
+    debug_assert!(
+        fits_sgemm(a.rows, a.cols, b.cols)
+            || (a.rs == 1 && a.rows >= PANEL_MIN_ROWS && has_fma_kernel())
+    );
     debug_assert_eq!(a.cols, b.rows);
     if a.rs == 1 && has_fma_kernel() {
         panel_gemm(c, a, b);

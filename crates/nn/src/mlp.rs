@@ -40,7 +40,7 @@ impl Dense {
     fn mul(&self, x: &[f32], n: usize, z: &mut [f32], packed: &mut [f32]) {
         let (inp, out) = (self.inp, self.out);
         // A first layer of a few inputs too, on a batch (a single sample takes the vector loop).
-        if fits_sgemm(out, inp, n) || (fits_panel(out) && n >= SGEMM_MIN_DIM) {
+        if fits_sgemm(out, inp, n) || fits_panel(out, n) {
             sgemm(
                 z,
                 MatRef::col_major(&self.w, out, inp),
@@ -89,7 +89,7 @@ impl Dense {
         // Columns `rows` of W: an `out x r` column-major block.
         let w_cols = &self.w[rows.start * out..rows.end * out];
         // The input gradient of a layer of a few outputs too (the output layer), on a batch.
-        if fits_sgemm(r, out, n) || (fits_panel(r) && n >= SGEMM_MIN_DIM) {
+        if fits_sgemm(r, out, n) || fits_panel(r, n) {
             sgemm_via(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
@@ -129,13 +129,13 @@ impl Dense {
     fn set_weight_grad(&mut self, dz: &[f32], x: &[f32], n: usize, packed: &mut [f32]) {
         let (inp, out) = (self.inp, self.out);
         // The weight gradient of a first layer of a few inputs too.
-        if fits_sgemm(out, n, inp) || (fits_panel(out) && n >= SGEMM_MIN_DIM) {
+        if fits_sgemm(out, n, inp) || fits_panel(out, n) {
             sgemm(
                 &mut self.w,
                 MatRef::col_major(dz, out, n),
                 MatRef::col_major(x, inp, n).t(),
             );
-        } else if out < inp && fits_panel(inp) && n >= SGEMM_MIN_DIM {
+        } else if out < inp && fits_panel(inp, n) {
             // Few outputs (the output layer): `W^T = x dz^T` in the kernel, transposed once.
             let gt = &mut packed[..inp * out];
             sgemm(
