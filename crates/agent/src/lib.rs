@@ -213,29 +213,32 @@ impl RoundReport {
     }
 }
 
-/// Greedy test episodes of a saved agent (or any policy, such as a run's best weights). Calls
-/// `on_episode` with each outcome, the final state and the episode's end goal; returns the
-/// success rate.
+/// Episodes of a saved agent (or any policy, such as a run's best weights): greedy test episodes
+/// in `Mode::Test`, the behaviour policy of training (exploration and subgoal testing, nothing
+/// stored or learned) in `Mode::Train`. Calls `on_episode` with each outcome, the final state and
+/// the rollout (its end goal, what each level did); returns the success rate.
 pub fn evaluate(
     env: &mut dyn Env,
     agent: &mut impl Policy,
     run: &RunConfig,
     episodes: usize,
     seed: u64,
-    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
+    mode: Mode,
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &Episodes),
 ) -> f32 {
     let spec = env.spec().clone();
     let mut rng = Rng::seed_from(seed);
     // Never consulted in test mode, where every level acts greedily.
     let mut exploration = GaussianExploration::new(&spec, &run.agent, rng.fork());
     let mut episodes_of = Episodes::new(&spec, &run.agent, run.hiro());
-    test_episodes(
+    play_episodes(
         &mut episodes_of,
         env,
         agent,
         &mut exploration,
         &mut rng,
         episodes,
+        mode,
         on_episode,
     )
 }
@@ -249,13 +252,39 @@ pub fn test_episodes(
     exploration: &mut impl Exploration,
     rng: &mut Rng,
     episodes: usize,
-    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &Episodes),
+) -> f32 {
+    play_episodes(
+        rollout,
+        env,
+        agent,
+        exploration,
+        rng,
+        episodes,
+        Mode::Test,
+        on_episode,
+    )
+}
+
+/// Runs `episodes` episodes of `policy` in `mode` (in `Mode::Train` with `exploration`'s
+/// behaviour policy), storing nothing; calls `on_episode` after each with its outcome, the final
+/// state and the rollout; returns the success rate.
+#[allow(clippy::too_many_arguments)] // the rollout's collaborators, as `Episodes::run_episode`
+pub fn play_episodes(
+    rollout: &mut Episodes,
+    env: &mut dyn Env,
+    agent: &mut impl Policy,
+    exploration: &mut impl Exploration,
+    rng: &mut Rng,
+    episodes: usize,
+    mode: Mode,
+    mut on_episode: impl FnMut(&EpisodeOutcome, &[f32], &Episodes),
 ) -> f32 {
     let mut successes = 0usize;
     for _ in 0..episodes {
-        let outcome = rollout.run_episode(env, agent, exploration, Mode::Test, rng, &mut NullSink);
+        let outcome = rollout.run_episode(env, agent, exploration, mode, rng, &mut NullSink);
         successes += usize::from(outcome.success);
-        on_episode(&outcome, env.state(), rollout.end_goal());
+        on_episode(&outcome, env.state(), rollout);
     }
     successes as f32 / episodes.max(1) as f32
 }

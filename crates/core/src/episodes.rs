@@ -2,7 +2,7 @@
 //! behind one call.
 
 use crate::hiro::{HiroConfig, HiroRollout};
-use crate::rollout::{EpisodeOutcome, Exploration, Hierarchy, Policy};
+use crate::rollout::{EpisodeOutcome, Exploration, Hierarchy, LevelCounts, Policy};
 use crate::{AgentConfig, Env, EnvSpec, Mode, Rng, TransitionSink};
 
 /// Runs episodes of the run's algorithm; owns every buffer an episode needs.
@@ -48,6 +48,17 @@ impl Episodes {
         match self {
             Self::Hac(h) => h.end_goal(),
             Self::Hiro(h) => h.end_goal(),
+        }
+    }
+
+    /// Adds what each level did in the current (or last) episode to `totals` (one entry per
+    /// level). HAC only: HIRO's levels are not given goals to reach in HAC's sense, so its
+    /// episodes add nothing.
+    pub fn add_level_counts(&self, totals: &mut [LevelCounts]) {
+        if let Self::Hac(h) = self {
+            for (level, total) in totals.iter_mut().enumerate().take(h.num_levels()) {
+                total.add(h.level_counts(level));
+            }
         }
     }
 }

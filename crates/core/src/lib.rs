@@ -32,7 +32,9 @@ pub use env::{Env, EnvSpec, LevelDims, Mode, StateError, horizon_covering};
 pub use episodes::Episodes;
 pub use limits::{LimitError, TransitionLimits};
 pub use rng::Rng;
-pub use rollout::{EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, Policy};
+pub use rollout::{
+    EpisodeOutcome, Exploration, GaussianExploration, Hierarchy, LevelCounts, Policy,
+};
 pub use transition::{
     Batch, BatchRef, NullSink, OwnedTransition, Transition, TransitionKind, TransitionSink,
 };

@@ -109,6 +109,62 @@ pub struct EpisodeOutcome {
     pub steps: usize,
 }
 
+/// What one level did over one or more episodes: how often it was given a goal and reached it,
+/// how many attempts it made, and (in training) how its subgoal tests went. The diagnostic of
+/// a hierarchy that does not learn: it says which level fails to reach the goals the level above
+/// sets it (`hac eval` prints it per level).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LevelCounts {
+    /// Times the level was given a goal and ran until it returned control upward.
+    pub calls: u64,
+    /// Calls that ended with the level's own goal reached.
+    pub reached: u64,
+    /// Calls that used all `H` attempts without reaching the level's goal.
+    pub maxed_out: u64,
+    /// Attempts: primitive actions at level 0, subgoals proposed above.
+    pub attempts: u64,
+    /// Subgoals this level proposed that were tested (levels above 0, training episodes only):
+    /// chosen with probability lambda, or every subgoal while a level above tests its own.
+    pub tested: u64,
+    /// Tested subgoals that the level below missed after maxing out: the penalty transitions.
+    pub penalties: u64,
+}
+
+impl LevelCounts {
+    /// Adds `other`'s counts to these.
+    pub fn add(&mut self, other: &LevelCounts) {
+        self.calls += other.calls;
+        self.reached += other.reached;
+        self.maxed_out += other.maxed_out;
+        self.attempts += other.attempts;
+        self.tested += other.tested;
+        self.penalties += other.penalties;
+    }
+
+    /// The share of calls that reached the level's goal (0 with no calls).
+    pub fn reached_rate(&self) -> f64 {
+        ratio(self.reached, self.calls)
+    }
+
+    /// The share of tested subgoals that were penalised (0 with none tested).
+    pub fn penalty_rate(&self) -> f64 {
+        ratio(self.penalties, self.tested)
+    }
+
+    /// Attempts per call (0 with no calls).
+    pub fn attempts_per_call(&self) -> f64 {
+        ratio(self.attempts, self.calls)
+    }
+}
+
+fn ratio(num: u64, den: u64) -> f64 {
+    if den == 0 {
+        0.0
+    } else {
+        num as f64 / den as f64
+    }
+}
+
 /// Attempts of one level since it was last called, kept for hindsight goal replay.
 #[derive(Debug, Default)]
 struct HerList {
@@ -139,6 +195,8 @@ struct LevelState {
     /// Whether the last call used all `H` attempts without reaching the goal.
     maxed_out: bool,
     her: HerList,
+    /// What this level did in the current (or last) episode.
+    counts: LevelCounts,
 }
 
 /// Runs episodes through k levels; owns every buffer so that episodes allocate nothing.
@@ -197,6 +255,7 @@ impl Hierarchy {
                     reached: false,
                     maxed_out: false,
                     her: HerList::default(),
+                    counts: LevelCounts::default(),
                 }
             })
             .collect();
@@ -219,6 +278,11 @@ impl Hierarchy {
     /// The end goal of the current (or last) episode.
     pub fn end_goal(&self) -> &[f32] {
         &self.levels[self.levels.len() - 1].goal
+    }
+
+    /// What level `level` did in the current (or last) episode.
+    pub fn level_counts(&self, level: usize) -> &LevelCounts {
+        &self.levels[level].counts
     }
 
     /// Resets `env`, draws an end goal for `mode`, and runs one episode. In `Mode::Train` every
@@ -268,6 +332,7 @@ impl Hierarchy {
         for level in &mut self.levels {
             level.reached = false;
             level.maxed_out = false;
+            level.counts = LevelCounts::default();
         }
         let mut episode = Episode {
             env,
@@ -307,6 +372,8 @@ impl Hierarchy {
                 }
             }
             bounds.clip(&mut lv.action);
+            // A tested subgoal, whether this level chose to test it or a test above propagates.
+            lv.counts.tested += u64::from(i > 0 && test_next);
 
             let highest_reached = if i > 0 {
                 let (below, this) = self.levels.split_at_mut(i);
@@ -331,6 +398,10 @@ impl Hierarchy {
             if higher_reached || budget_spent || out_of_attempts {
                 let lv = &mut self.levels[i];
                 lv.maxed_out = attempts >= self.horizon && !lv.reached;
+                lv.counts.calls += 1;
+                lv.counts.attempts += attempts as u64;
+                lv.counts.reached += u64::from(lv.reached);
+                lv.counts.maxed_out += u64::from(lv.maxed_out);
                 if train {
                     self.replay_goals(ep, i);
                 }
@@ -426,6 +497,7 @@ impl Hierarchy {
         her.len = n + 1;
 
         if tested_subgoal && lower.is_some_and(|l| l.maxed_out) {
+            lv.counts.penalties += 1;
             ep.sink.push(
                 i,
                 &Transition {

@@ -7,7 +7,7 @@ mod common;
 use std::collections::VecDeque;
 
 use common::{PointEnv, ScriptedExploration, ScriptedPolicy, agent_config};
-use hac_core::{Hierarchy, Mode, OwnedTransition, TransitionKind};
+use hac_core::{Hierarchy, LevelCounts, Mode, OwnedTransition, TransitionKind};
 
 const FLAG: f32 = 100.0;
 
@@ -135,6 +135,31 @@ fn section_3_8_worked_example() {
         exploration.replay_indices.is_empty(),
         "every scripted replay index was used"
     );
+    // Level 0 was called twice and maxed out both times (5 actions each); level 1 made two
+    // attempts in one call, tested one subgoal and was penalised for it, and ran out of budget
+    // without reaching its goal (not maxed out: 2 of H = 5 attempts).
+    assert_eq!(
+        *hierarchy.level_counts(0),
+        LevelCounts {
+            calls: 2,
+            reached: 0,
+            maxed_out: 2,
+            attempts: 10,
+            tested: 0,
+            penalties: 0,
+        }
+    );
+    assert_eq!(
+        *hierarchy.level_counts(1),
+        LevelCounts {
+            calls: 1,
+            reached: 0,
+            maxed_out: 0,
+            attempts: 2,
+            tested: 1,
+            penalties: 1,
+        }
+    );
 }
 
 #[test]
@@ -176,6 +201,15 @@ fn reached_subgoal_is_its_own_hindsight_action_and_test_passes_without_penalty()
         level1,
         vec![&t(1, HindsightAction, 0.0, 3.0, -1.0, 3.0, FLAG, false)]
     );
+    // The tested subgoal was reached: counted as tested, not penalised.
+    let (low, high) = (hierarchy.level_counts(0), hierarchy.level_counts(1));
+    assert_eq!(
+        (low.calls, low.reached, low.maxed_out, low.attempts),
+        (1, 1, 0, 3)
+    );
+    assert_eq!((high.tested, high.penalties), (1, 0));
+    assert_eq!(low.reached_rate(), 1.0);
+    assert_eq!(high.penalty_rate(), 0.0);
 }
 
 #[test]

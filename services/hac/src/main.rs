@@ -44,6 +44,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use hac_agent::{Agent, RoundReport};
+use hac_core::{Episodes, LevelCounts, Mode};
 use hac_learner::LearnerOptions;
 use hac_run::daemon::{self, ConfigFile, Mount};
 use hac_serve::train_embedded_with;
@@ -410,9 +411,16 @@ struct EvalArgs {
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
-    /// Also print one JSON line per episode (success, primitive steps, end goal, final state).
+    /// Also print one JSON line per episode (success, primitive steps, end goal, final state,
+    /// what each level did).
     #[arg(long)]
     per_episode: bool,
+    /// Play the behaviour policy of training instead of greedy episodes: exploration noise,
+    /// random actions and subgoal testing as in training episodes, with training end goals,
+    /// nothing stored or learned. The per-level figures then also say how many subgoals each
+    /// level tested and how many of those tests the level below failed (penalties).
+    #[arg(long)]
+    behaviour: bool,
 }
 
 fn main() {
@@ -634,12 +642,25 @@ fn train(args: TrainArgs) -> Result<()> {
 fn eval(args: EvalArgs) -> Result<()> {
     let run = config::load_run(&args.run)?;
     let episodes = args.episodes.unwrap_or(run.agent.test_episodes);
+    let mode = if args.behaviour {
+        Mode::Train
+    } else {
+        Mode::Test
+    };
     let mut index = 0usize;
-    let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], end_goal: &[f32]| {
+    let mut totals = vec![LevelCounts::default(); run.levels];
+    let mut this_episode = vec![LevelCounts::default(); run.levels];
+    let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], rollout: &Episodes| {
+        this_episode.fill(LevelCounts::default());
+        rollout.add_level_counts(&mut this_episode);
+        for (total, this) in totals.iter_mut().zip(&this_episode) {
+            total.add(this);
+        }
         if args.per_episode {
+            let levels: Vec<_> = this_episode.iter().map(level_counts_json).collect();
             println!(
                 "{}",
-                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": end_goal, "final_state": state})
+                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "final_state": state, "levels": levels})
             );
         }
         index += 1;
@@ -653,7 +674,7 @@ fn eval(args: EvalArgs) -> Result<()> {
                 run.env
             );
         }
-        tabular_cmd::evaluate(&args.run, &run, episodes, args.seed, on_episode)?
+        tabular_cmd::evaluate(&args.run, &run, episodes, args.seed, mode, on_episode)?
     } else if args.best {
         weights = "weights/best/";
         let mut env = run.make_env()?;
@@ -664,6 +685,7 @@ fn eval(args: EvalArgs) -> Result<()> {
             &run,
             episodes,
             args.seed,
+            mode,
             on_episode,
         )
     } else {
@@ -676,23 +698,66 @@ fn eval(args: EvalArgs) -> Result<()> {
             &run,
             episodes,
             args.seed,
+            mode,
             on_episode,
         )
     };
+    // HIRO's levels are not given goals in HAC's sense: its rollout counts nothing.
+    let counted = totals.iter().any(|t| t.calls > 0);
+    let kind = if args.behaviour {
+        "behaviour-policy"
+    } else {
+        "greedy test"
+    };
     if args.json {
+        let levels: Vec<_> = totals.iter().map(level_counts_json).collect();
         println!(
             "{}",
-            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "success_rate": success})
+            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "per_level": if counted { serde_json::json!(levels) } else { serde_json::Value::Null }})
         );
     } else {
         println!(
-            "{} ({weights}): {} with {} levels: success {:.1}% over {} greedy test episodes",
+            "{} ({weights}): {} with {} levels: success {:.1}% over {} {kind} episodes",
             args.run.display(),
             run.env,
             run.levels,
             100.0 * success,
             episodes
         );
+        if counted {
+            for (level, t) in totals.iter().enumerate().rev() {
+                println!("  {}", level_counts_line(level, t));
+            }
+        }
     }
     Ok(())
+}
+
+/// One level's [`LevelCounts`] as `hac eval` prints them.
+fn level_counts_line(level: usize, t: &LevelCounts) -> String {
+    let mut line = format!(
+        "level {level}: {} calls, goal reached in {:.1}%, maxed out in {:.1}%, {:.1} attempts per call",
+        t.calls,
+        100.0 * t.reached_rate(),
+        100.0
+            * if t.calls == 0 {
+                0.0
+            } else {
+                t.maxed_out as f64 / t.calls as f64
+            },
+        t.attempts_per_call()
+    );
+    if t.tested > 0 {
+        line.push_str(&format!(
+            ", {} subgoals tested, {:.1}% of them penalised",
+            t.tested,
+            100.0 * t.penalty_rate()
+        ));
+    }
+    line
+}
+
+/// One level's [`LevelCounts`] in `hac eval`'s JSON.
+fn level_counts_json(t: &LevelCounts) -> serde_json::Value {
+    serde_json::json!({"calls": t.calls, "reached": t.reached, "maxed_out": t.maxed_out, "attempts": t.attempts, "tested": t.tested, "penalties": t.penalties})
 }

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use hac_agent::{LevelReport, RoundReport};
-use hac_core::{Env, EpisodeOutcome, Episodes, Hierarchy, Rng};
+use hac_core::{Env, EpisodeOutcome, Episodes, Hierarchy, Mode, Rng};
 use hac_tabular::{FourRooms, TabularAgent, TabularHac};
 
 use crate::config::RunConfig;
@@ -162,28 +162,30 @@ pub fn load(run_dir: &Path, run: &RunConfig, seed: u64) -> Result<(FourRooms, Ta
     Ok((env, agent))
 }
 
-/// `hac eval` for a grid world: `episodes` greedy test episodes of the run in `run_dir`, seeded
-/// by `seed`; calls `on_episode` with each outcome, final state and end goal; returns the success
-/// rate.
+/// `hac eval` for a grid world: `episodes` episodes in `mode` (greedy test episodes, or the
+/// behaviour policy of training) of the run in `run_dir`, seeded by `seed`; calls `on_episode`
+/// with each outcome, final state and the rollout; returns the success rate.
 pub fn evaluate(
     run_dir: &Path,
     run: &RunConfig,
     episodes: usize,
     seed: u64,
-    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &[f32]),
+    mode: Mode,
+    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &Episodes),
 ) -> Result<f32> {
     let (mut env, mut agent) = load(run_dir, run, seed)?;
     let mut rng = Rng::seed_from(seed);
-    // Never consulted in test mode, where every level acts greedily.
+    // Consulted in the behaviour policy's episodes only (test mode is greedy at every level).
     let mut exploration = agent.exploration(&run.agent, rng.fork());
     let mut rollout = Episodes::Hac(Hierarchy::new(env.spec(), &run.agent));
-    Ok(hac_agent::test_episodes(
+    Ok(hac_agent::play_episodes(
         &mut rollout,
         &mut env,
         &mut agent,
         &mut exploration,
         &mut rng,
         episodes,
+        mode,
         on_episode,
     ))
 }

@@ -116,12 +116,56 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     let rate = result["success_rate"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&rate));
 
-    // --per-episode: one line per episode with its end goal and final state, then the summary.
+    // What each level did, summed over the episodes: every level's attempts call the level
+    // below once each, and the top level is called once per episode.
+    let levels: Vec<serde_json::Value> =
+        serde_json::from_value(result["per_level"].clone()).unwrap();
+    assert_eq!(levels.len(), 2, "{result}");
+    assert_eq!(levels[1]["calls"], 4, "{result}");
+    assert_eq!(levels[0]["calls"], levels[1]["attempts"], "{result}");
+    assert_eq!(
+        levels[1]["tested"], 0,
+        "greedy episodes test nothing: {result}"
+    );
+
+    // The behaviour policy of training: subgoals are tested, and each penalty is a test.
+    let o = hac(&[
+        "eval",
+        "--run",
+        out_s,
+        "--episodes",
+        "4",
+        "--behaviour",
+        "--json",
+    ]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
+    assert_eq!(result["mode"], "behaviour");
+    let levels: Vec<serde_json::Value> =
+        serde_json::from_value(result["per_level"].clone()).unwrap();
+    let count = |l: usize, key: &str| levels[l][key].as_u64().unwrap();
+    assert!(count(1, "tested") > 0, "{result}");
+    assert!(count(1, "penalties") <= count(1, "tested"), "{result}");
+    assert_eq!(
+        count(0, "tested"),
+        0,
+        "level 0 proposes no subgoals: {result}"
+    );
+
+    // --per-episode: one line per episode with its end goal, final state and what each level
+    // did, then the summary and a line per level.
     let o = hac(&["eval", "--run", out_s, "--episodes", "3", "--per-episode"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let stdout = text(&o.stdout);
     let lines: Vec<&str> = stdout.lines().collect();
-    assert_eq!(lines.len(), 4, "{lines:?}");
+    assert_eq!(lines.len(), 6, "{lines:?}");
+    assert!(
+        lines[4]
+            .trim_start()
+            .starts_with("level 1: 3 calls, goal reached in")
+            && lines[5].trim_start().starts_with("level 0: "),
+        "{lines:?}"
+    );
     for (i, line) in lines[..3].iter().enumerate() {
         let e: serde_json::Value = serde_json::from_str(line).unwrap();
         assert_eq!(e["episode"], i);
@@ -135,6 +179,13 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
         let state: Vec<f64> = serde_json::from_value(e["final_state"].clone()).unwrap();
         let reached = (state[0] - goal[0]).abs() <= 0.01 && (state[1] - goal[1]).abs() <= 0.02;
         assert_eq!(e["success"], reached, "{line}");
+        // Level 0's attempts are the episode's primitive actions; the top level reached its
+        // goal exactly when the episode succeeded.
+        let levels = &e["levels"];
+        assert_eq!(levels[0]["attempts"], e["steps"], "{line}");
+        assert_eq!(levels[0]["calls"], levels[1]["attempts"], "{line}");
+        assert_eq!(levels[1]["calls"], 1, "{line}");
+        assert_eq!(levels[1]["reached"], u64::from(reached), "{line}");
     }
     assert!(lines[3].contains("success"), "{}", lines[3]);
     let _ = std::fs::remove_dir_all(&out);
