@@ -192,6 +192,7 @@ impl RoundReport {
         h
     }
 
+    /// The report's row of the learning-curve CSV, under [`csv_header`](Self::csv_header).
     pub fn csv_row(&self) -> String {
         let mut r = format!(
             "{},{},{},{:.4},{:.3},{:.1},{:.1}",
@@ -210,6 +211,53 @@ impl RoundReport {
             ));
         }
         r
+    }
+
+    /// Parses a row written by [`csv_row`](Self::csv_row), of a run with `levels` levels. The
+    /// success rate and the timings come back as rounded in the row (4 decimals for the rate);
+    /// an error counts the columns when there are too few or too many, or names the one that is
+    /// not a number.
+    pub fn from_csv_row(row: &str, levels: usize) -> Result<Self, String> {
+        let header = Self::csv_header(levels);
+        let names: Vec<&str> = header.split(',').collect();
+        let fields: Vec<&str> = row.trim_end().split(',').collect();
+        if fields.len() != names.len() {
+            return Err(format!(
+                "{} columns, expected {} ({levels} level{})",
+                fields.len(),
+                names.len(),
+                if levels == 1 { "" } else { "s" }
+            ));
+        }
+        fn parse<T: std::str::FromStr>(
+            fields: &[&str],
+            names: &[&str],
+            i: usize,
+        ) -> Result<T, String> {
+            fields[i]
+                .parse()
+                .map_err(|_| format!("`{}` is not a valid {}", fields[i], names[i]))
+        }
+        let level = |l: usize| -> Result<LevelReport, String> {
+            let at = 7 + 5 * l;
+            Ok(LevelReport {
+                updates: parse(&fields, &names, at)?,
+                replay_len: parse(&fields, &names, at + 1)?,
+                critic_loss: parse(&fields, &names, at + 2)?,
+                actor_loss: parse(&fields, &names, at + 3)?,
+                mean_q: parse(&fields, &names, at + 4)?,
+            })
+        };
+        Ok(Self {
+            round: parse(&fields, &names, 0)?,
+            episodes: parse(&fields, &names, 1)?,
+            env_steps: parse(&fields, &names, 2)?,
+            success_rate: parse(&fields, &names, 3)?,
+            elapsed_s: parse(&fields, &names, 4)?,
+            env_steps_per_s: parse(&fields, &names, 5)?,
+            updates_per_s: parse(&fields, &names, 6)?,
+            levels: (0..levels).map(level).collect::<Result<_, _>>()?,
+        })
     }
 }
 
@@ -287,4 +335,44 @@ pub fn play_episodes(
         on_episode(&outcome, env.state(), rollout);
     }
     successes as f32 / episodes.max(1) as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_curve_row_parses_back_as_written() {
+        let report = RoundReport {
+            round: 3,
+            episodes: 150,
+            env_steps: 12_345,
+            success_rate: 0.75,
+            elapsed_s: 12.5,
+            env_steps_per_s: 987.5,
+            updates_per_s: 60.0,
+            levels: vec![
+                LevelReport {
+                    updates: 40,
+                    replay_len: 900,
+                    critic_loss: 0.123_456_79,
+                    actor_loss: -1.5,
+                    mean_q: f32::NAN,
+                },
+                LevelReport::default(),
+            ],
+        };
+        let parsed = RoundReport::from_csv_row(&report.csv_row(), 2).unwrap();
+        assert!(parsed.levels[0].mean_q.is_nan());
+        let nan_free = |mut r: RoundReport| {
+            r.levels[0].mean_q = 0.0;
+            r
+        };
+        assert_eq!(nan_free(parsed), nan_free(report.clone()));
+        let err = RoundReport::from_csv_row(&report.csv_row(), 1).unwrap_err();
+        assert!(err.contains("17 columns, expected 12"), "{err}");
+        let bad = report.csv_row().replacen("150", "x", 1);
+        let err = RoundReport::from_csv_row(&bad, 2).unwrap_err();
+        assert_eq!(err, "`x` is not a valid episodes");
+    }
 }

@@ -147,7 +147,7 @@ impl Weights for TabularAgent {
 }
 
 /// Headline figures of a finished run.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, Deserialize)]
 pub struct Summary {
     pub env: String,
     pub levels: usize,
@@ -194,7 +194,9 @@ pub struct RunDir {
 impl RunDir {
     /// Creates the directory and writes `config.toml` and the CSV header. A directory that
     /// already holds a run is refused unless `overwrite`, so results are never lost by accident;
-    /// overwriting also removes the old run's checkpoints, which a resume would otherwise find.
+    /// overwriting also removes the old run's checkpoints, which a resume would otherwise find,
+    /// and its `summary.json`, so that the new run does not pass for a finished one before it
+    /// is.
     pub fn create(path: &Path, config: &RunConfig, overwrite: bool) -> Result<Self> {
         if path.join("config.toml").exists() {
             if !overwrite {
@@ -204,6 +206,14 @@ impl RunDir {
                 );
             }
             CheckpointStore::of_run(path).remove_all()?;
+            let summary = path.join(SUMMARY_FILE);
+            match std::fs::remove_file(&summary) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => {
+                    return Err(e).with_context(|| format!("removing {}", summary.display()));
+                }
+            }
         }
         std::fs::create_dir_all(path)
             .with_context(|| format!("creating run directory {}", path.display()))?;
@@ -332,11 +342,45 @@ impl RunDir {
             extra,
         };
         write_file(
-            &self.path.join("summary.json"),
+            &self.path.join(SUMMARY_FILE),
             serde_json::to_string_pretty(&summary)?.as_bytes(),
         )?;
         Ok(summary)
     }
+}
+
+const SUMMARY_FILE: &str = "summary.json";
+
+/// Reads the `summary.json` of the run in `run`: written last, by [`RunDir::finish`], so a run
+/// without one did not get there (it was killed, or is still training). A run stopped by
+/// SIGINT/SIGTERM has one too, over the episodes it trained.
+pub fn load_summary(run: &Path) -> Result<Summary> {
+    let path = run.join(SUMMARY_FILE);
+    let text = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_slice(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// Reads the `curve.csv` of the run in `run`, a run of `levels` levels: one report per test
+/// round, as [`RoundReport::from_csv_row`] parses it back.
+pub fn load_curve(run: &Path, levels: usize) -> Result<Vec<RoundReport>> {
+    let path = run.join("curve.csv");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header = RoundReport::csv_header(levels);
+    if lines.next() != Some(header.as_str()) {
+        anyhow::bail!(
+            "{} does not start with the header of a {levels}-level run ({header})",
+            path.display()
+        );
+    }
+    lines
+        .enumerate()
+        .map(|(i, row)| {
+            RoundReport::from_csv_row(row, levels)
+                .map_err(|message| anyhow::anyhow!("{}, line {}: {message}", path.display(), i + 2))
+        })
+        .collect()
 }
 
 /// The line `hac train` prints before training `run` into `out`; `learner` names a learner other

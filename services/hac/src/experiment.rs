@@ -11,6 +11,12 @@
 //! - `summary.md`: per environment, algorithm and level count, episodes to 50% and 90% (the
 //!   median seed's, a seed that never got there counting as the slowest, so "never" unless at
 //!   least half did; and how many did), final success (mean +- std), wall time.
+//!
+//! With `--resume`, a run whose directory already holds a finished run of the configuration the
+//! grid resolves for it is read back instead of trained again ([`inspect`] says what counts as
+//! finished), and the summary covers it like the runs trained now; a run that did not finish is
+//! trained again from the start. A finished run of another configuration is refused before any
+//! run starts.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -25,7 +31,7 @@ use hac_serve::train_embedded_with;
 
 use crate::config::{self, RunConfig};
 use crate::plot;
-use crate::run_dir::{RunDir, Summary};
+use crate::run_dir::{self, RunDir, Summary};
 use crate::tabular_cmd;
 
 /// What to run.
@@ -44,6 +50,9 @@ pub struct Grid {
     pub config: Option<PathBuf>,
     pub set: Vec<String>,
     pub overwrite: bool,
+    /// Read back the finished runs already in `out` (of the same configuration) instead of
+    /// training them again; train the others, unfinished ones again from the start.
+    pub resume: bool,
     /// Set by SIGINT/SIGTERM: running runs stop and save, queued runs do not start.
     pub interrupt: Arc<AtomicBool>,
 }
@@ -56,7 +65,25 @@ struct Finished {
     summary: Summary,
 }
 
+/// What `--resume` found in a run's directory.
+#[derive(Debug)]
+enum Found {
+    /// No run: train it.
+    Nothing,
+    /// A finished run of the configuration the grid resolves: reuse it.
+    Finished(Box<Finished>),
+    /// A run that did not finish, and why it counts as unfinished: train it again.
+    Unfinished(String),
+}
+
+/// Runs the grid (see the module documentation) and writes its summary.
 pub fn run(grid: Grid) -> Result<()> {
+    if grid.resume && grid.overwrite {
+        bail!(
+            "`--resume` and `--overwrite` contradict each other: --resume keeps the finished runs \
+             in --out, --overwrite trains every run again; pass one of them"
+        );
+    }
     if grid.levels.is_empty() {
         bail!("invalid value for `--levels`: give at least one level count, e.g. 1,2,3");
     }
@@ -109,22 +136,43 @@ pub fn run(grid: Grid) -> Result<()> {
             }
         }
     }
-    if !grid.overwrite {
-        let taken = runs
-            .iter()
-            .map(|c| run_path(&grid.out, c))
-            .find(|p| p.join("config.toml").exists());
-        if let Some(taken) = taken {
-            bail!(
-                "{} already holds a run; choose another --out or pass --overwrite",
-                taken.display()
-            );
+    // With --resume, look at every run's directory before starting any, so that a finished run
+    // of another configuration stops the grid before anything is overwritten.
+    let found: Vec<Found> = if grid.resume {
+        runs.iter()
+            .map(|c| inspect(&run_path(&grid.out, c), c))
+            .collect::<Result<_>>()?
+    } else {
+        if !grid.overwrite {
+            let taken = runs
+                .iter()
+                .map(|c| run_path(&grid.out, c))
+                .find(|p| p.join("config.toml").exists());
+            if let Some(taken) = taken {
+                bail!(
+                    "{} already holds a run; choose another --out, pass --resume to finish the \
+                     grid it belongs to, or --overwrite to train every run again",
+                    taken.display()
+                );
+            }
         }
-    }
+        runs.iter().map(|_| Found::Nothing).collect()
+    };
     std::fs::create_dir_all(&grid.out)
         .with_context(|| format!("creating {}", grid.out.display()))?;
+    // The finished runs read back, each with its index in `runs`.
+    let mut reused: Vec<(usize, Finished)> = Vec::new();
+    // The runs to train, each with why it is trained again if it was there unfinished.
+    let mut to_train: Vec<(usize, Option<String>)> = Vec::new();
+    for (i, found) in found.into_iter().enumerate() {
+        match found {
+            Found::Nothing => to_train.push((i, None)),
+            Found::Finished(f) => reused.push((i, *f)),
+            Found::Unfinished(why) => to_train.push((i, Some(why))),
+        }
+    }
     println!(
-        "experiment: {} x {} with levels {:?} x {} seeds = {} runs, {} at a time ({} learner \
+        "experiment: {} x {} with levels {:?} x {} seeds = {} runs{}, {} at a time ({} learner \
          threads each); writing {}",
         grid.envs.join(","),
         grid.algos
@@ -135,50 +183,77 @@ pub fn run(grid: Grid) -> Result<()> {
         grid.levels,
         grid.seeds,
         runs.len(),
-        grid.jobs.min(runs.len()),
+        if grid.resume {
+            format!(
+                " ({} finished already, {} to train)",
+                reused.len(),
+                to_train.len()
+            )
+        } else {
+            String::new()
+        },
+        grid.jobs.min(to_train.len()).max(1),
         learner_threads,
         grid.out.display()
     );
+    for (n, (_, f)) in reused.iter().enumerate() {
+        println!(
+            "[{}/{}] {}: reused ({})",
+            n + 1,
+            runs.len(),
+            run_label(&f.config),
+            outcome(&f.summary)
+        );
+    }
+    for (i, why) in &to_train {
+        if let Some(why) = why {
+            println!(
+                "{}: unfinished ({why}); training it again from the start",
+                run_path(&grid.out, &runs[*i]).display()
+            );
+        }
+    }
 
     let started = Instant::now();
     let next = AtomicUsize::new(0);
-    let done = AtomicUsize::new(0);
-    // Each result with its run's index in `runs`.
-    let results: Mutex<Vec<(usize, Result<Finished>)>> = Mutex::new(Vec::new());
+    let done = AtomicUsize::new(reused.len());
+    // Each result with its run's index in `runs`; the reused runs' first.
+    let results: Mutex<Vec<(usize, Result<Finished>)>> =
+        Mutex::new(reused.into_iter().map(|(i, f)| (i, Ok(f))).collect());
     std::thread::scope(|scope| {
-        for _ in 0..grid.jobs.min(runs.len()) {
+        for _ in 0..grid.jobs.min(to_train.len()) {
             scope.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, Ordering::Relaxed);
-                    let Some(config) = runs.get(i) else { break };
+                while let Some((i, again)) = to_train.get(next.fetch_add(1, Ordering::Relaxed)) {
                     if grid.interrupt.load(Ordering::Relaxed) {
                         break;
                     }
+                    let config = &runs[*i];
                     let result = run_one(config, &grid.out, learner_threads, &grid.interrupt);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    let again = if again.is_some() {
+                        " (trained again: it was unfinished)"
+                    } else {
+                        ""
+                    };
                     match &result {
                         Ok(f) => println!(
-                            "[{n}/{}] {} {} {} level{}, seed {}: final {:.1}%, 90% {}, {:.1}s",
+                            "[{n}/{}] {}: {}{again}",
                             runs.len(),
-                            f.config.env,
-                            f.config.algo,
-                            f.config.levels,
-                            if f.config.levels == 1 { "" } else { "s" },
-                            f.config.seed,
-                            100.0 * f.summary.final_success,
-                            f.summary
-                                .episodes_to_90
-                                .map_or("never".into(), |e| format!("after {e} episodes")),
-                            f.summary.wall_time_s
+                            run_label(&f.config),
+                            outcome(&f.summary)
                         ),
                         Err(e) => {
-                            println!("[{n}/{}] {} failed: {e:#}", runs.len(), config.run_name())
+                            println!(
+                                "[{n}/{}] {} failed{again}: {e:#}",
+                                runs.len(),
+                                config.run_name()
+                            )
                         }
                     }
                     results
                         .lock()
                         .expect("no panics while holding the lock")
-                        .push((i, result));
+                        .push((*i, result));
                 }
             });
         }
@@ -254,6 +329,147 @@ pub fn run(grid: Grid) -> Result<()> {
 
 fn run_path(out: &Path, config: &RunConfig) -> PathBuf {
     out.join(config.run_name())
+}
+
+/// A run as the progress lines name it: `cartpole hac 3 levels, seed 2`.
+fn run_label(config: &RunConfig) -> String {
+    format!(
+        "{} {} {} level{}, seed {}",
+        config.env,
+        config.algo,
+        config.levels,
+        if config.levels == 1 { "" } else { "s" },
+        config.seed
+    )
+}
+
+/// A finished run's result as the progress lines give it: final success, when it reached 90%,
+/// wall time.
+fn outcome(summary: &Summary) -> String {
+    format!(
+        "final {:.1}%, 90% {}, {:.1}s",
+        100.0 * summary.final_success,
+        summary
+            .episodes_to_90
+            .map_or("never".into(), |e| format!("after {e} episodes")),
+        summary.wall_time_s
+    )
+}
+
+/// What the directory `dir` of the run `config` holds, for `--resume`. A run is finished when
+/// `summary.json` (written last) and `curve.csv` read back, and the curve ends where the
+/// schedule ends a run: at its episode budget, or at a round reaching its `stop_at`. A run
+/// stopped by SIGINT/SIGTERM saved a summary too, but its curve stops short: unfinished. So is
+/// a directory with `config.toml` and no readable summary or curve (the run was killed, or is
+/// training). A finished run whose `config.toml` differs from `config`, or cannot be read, is
+/// an error: reusing it would mix configurations, training it again would lose it.
+fn inspect(dir: &Path, config: &RunConfig) -> Result<Found> {
+    if !dir.join("config.toml").exists() {
+        return Ok(Found::Nothing);
+    }
+    if !dir.join("summary.json").exists() {
+        return Ok(Found::Unfinished(
+            "no summary.json: it was stopped before the end".into(),
+        ));
+    }
+    let summary = match run_dir::load_summary(dir) {
+        Ok(summary) => summary,
+        Err(e) => return Ok(Found::Unfinished(format!("{e:#}"))),
+    };
+    // The level count of the directory's own run: the summary records it.
+    let curve = match run_dir::load_curve(dir, summary.levels) {
+        Ok(curve) => curve,
+        Err(e) => return Ok(Found::Unfinished(format!("{e:#}"))),
+    };
+    let last = curve.last();
+    if summary.rounds != curve.len() || summary.episodes != last.map_or(0, |r| r.episodes) {
+        return Ok(Found::Unfinished(format!(
+            "its summary.json ({} rounds, {} episodes) does not match its curve.csv ({} rounds)",
+            summary.rounds,
+            summary.episodes,
+            curve.len()
+        )));
+    }
+    let recorded = config::load_run(dir).with_context(|| {
+        format!(
+            "{} holds a finished run whose configuration cannot be read; choose another --out \
+             or pass --overwrite to train every run again",
+            dir.display()
+        )
+    })?;
+    // The summary's final success is the last round's, unrounded (curve.csv has 4 decimals).
+    let reached_target = !curve.is_empty()
+        && recorded
+            .stop_at
+            .is_some_and(|target| summary.final_success >= target);
+    if summary.episodes < recorded.episodes && !reached_target {
+        return Ok(Found::Unfinished(format!(
+            "interrupted after {} of {} episodes",
+            summary.episodes, recorded.episodes
+        )));
+    }
+    if recorded != *config {
+        bail!(
+            "{} holds a finished run of another configuration: {}; choose another --out, or \
+             pass --overwrite to train every run again",
+            dir.display(),
+            difference(&recorded, config)
+        );
+    }
+    Ok(Found::Finished(Box::new(Finished {
+        config: recorded,
+        curve,
+        summary,
+    })))
+}
+
+/// The first key where the configuration `recorded` in a run directory differs from the one the
+/// grid resolves (`resolved`), with both values.
+fn difference(recorded: &RunConfig, resolved: &RunConfig) -> String {
+    let as_table = |c: &RunConfig| toml::Value::try_from(c).ok();
+    match (as_table(recorded), as_table(resolved)) {
+        (Some(a), Some(b)) => match first_difference(&a, &b, "") {
+            Some((key, there, here)) => {
+                format!("`{key}` is {there} there and {here} in this grid")
+            }
+            None => "its config.toml differs from this grid's".into(),
+        },
+        _ => "its config.toml differs from this grid's".into(),
+    }
+}
+
+/// The first differing key of `a` and `b` under `prefix` (tables key by key, sorted; other
+/// values as a whole), with its value in each (`absent` where one has none).
+fn first_difference(
+    a: &toml::Value,
+    b: &toml::Value,
+    prefix: &str,
+) -> Option<(String, String, String)> {
+    match (a, b) {
+        (toml::Value::Table(a), toml::Value::Table(b)) => {
+            let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            keys.into_iter().find_map(|key| {
+                let path = if prefix.is_empty() {
+                    key.clone()
+                } else {
+                    format!("{prefix}.{key}")
+                };
+                match (a.get(key), b.get(key)) {
+                    (Some(x), Some(y)) => first_difference(x, y, &path),
+                    (x, y) => {
+                        let shown = |v: Option<&toml::Value>| {
+                            v.map_or("absent".to_string(), ToString::to_string)
+                        };
+                        Some((path, shown(x), shown(y)))
+                    }
+                }
+            })
+        }
+        _ if a == b => None,
+        _ => Some((prefix.to_string(), a.to_string(), b.to_string())),
+    }
 }
 
 fn run_one(

@@ -304,6 +304,13 @@ struct ExperimentArgs {
     /// Replace runs already in the output directory.
     #[arg(long)]
     overwrite: bool,
+    /// Finish an interrupted grid in the same --out: a run whose directory holds a finished run
+    /// of the same configuration is read back instead of trained again (the summary covers it
+    /// with its recorded wall time), an unfinished one (killed, or stopped by Ctrl-C) is trained
+    /// again from the start; a finished run of another configuration is refused before any run
+    /// starts. Not with --overwrite.
+    #[arg(long)]
+    resume: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -482,6 +489,7 @@ fn main() {
                 config: args.config,
                 set: args.set,
                 overwrite: args.overwrite,
+                resume: args.resume,
                 interrupt,
             })
         }),
