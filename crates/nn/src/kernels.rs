@@ -116,19 +116,97 @@ impl<'a> MatRef<'a> {
 /// [`panel_gemm`], this crate's kernel for the thin shapes of these networks, which needs no
 /// packing; otherwise in matrixmultiply's `sgemm`.
 pub(crate) fn sgemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
+    sgemm_then(c, a, b, Epilogue::Store);
+}
+
+/// [`sgemm`], then `epilogue` on the product: in the kernel's registers, before each block is
+/// stored, where [`panel_gemm`] runs; as a separate pass over `c` elsewhere. Either way each
+/// element is the same float.
+pub(crate) fn sgemm_then(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, epilogue: Epilogue<'_>) {
     debug_assert!(
         fits_sgemm(a.rows, a.cols, b.cols)
             || (a.rs == 1 && a.rows >= PANEL_MIN_ROWS && has_fma_kernel())
     );
     debug_assert_eq!(a.cols, b.rows);
     if a.rs == 1 && has_fma_kernel() {
-        panel_gemm(c, a, b);
+        panel_gemm(c, a, b, epilogue);
         return;
     }
-    let a = DMatrixView::from_slice_with_strides(a.data, a.rows, a.cols, a.rs, a.cs);
-    let b = DMatrixView::from_slice_with_strides(b.data, b.rows, b.cols, b.rs, b.cs);
-    let mut c = DMatrixViewMut::from_slice(&mut c[..a.nrows() * b.ncols()], a.nrows(), b.ncols());
-    c.gemm(1.0, &a, &b, 0.0);
+    {
+        let a = DMatrixView::from_slice_with_strides(a.data, a.rows, a.cols, a.rs, a.cs);
+        let b = DMatrixView::from_slice_with_strides(b.data, b.rows, b.cols, b.rs, b.cs);
+        let mut c =
+            DMatrixViewMut::from_slice(&mut c[..a.nrows() * b.ncols()], a.nrows(), b.ncols());
+        c.gemm(1.0, &a, &b, 0.0);
+    }
+    epilogue.apply(&mut c[..a.rows * b.cols]);
+}
+
+/// What happens to a product `c = a * b` (`m x n`, column-major) before it is final: the
+/// elementwise step that follows a hidden layer's products, done by [`panel_gemm`] on each block
+/// while it is still in registers, so that it costs no pass over memory of its own.
+#[derive(Debug)]
+pub(crate) enum Epilogue<'a> {
+    /// The product as it is.
+    Store,
+    /// `c[i, j] = relu(c[i, j] + bias[i])`: a hidden layer's forward pass (`bias` has `m`
+    /// entries). A NaN becomes 0, as `x > 0` is false for it.
+    BiasRelu(&'a [f32]),
+    /// `c[i, j] = if h[i, j] > 0 { c[i, j] } else { 0 }`, with `h` (`m x n`, column-major) a
+    /// hidden layer's ReLU output: the gradient with respect to its pre-activation. With
+    /// `bias_grad` (`m` entries), also its row sums, each summed in column order from 0: the
+    /// gradient of the layer's bias.
+    ReluMask {
+        h: &'a [f32],
+        bias_grad: Option<&'a mut [f32]>,
+    },
+}
+
+impl Epilogue<'_> {
+    /// The epilogue as a pass over a finished product `c` (`m x n`, `m` the length of the bias
+    /// or bias gradient, or `c.len() / n` for the mask): the same floats as in the kernel.
+    pub(crate) fn apply(self, c: &mut [f32]) {
+        match self {
+            Epilogue::Store => {}
+            Epilogue::BiasRelu(bias) => vectorized(
+                #[inline(always)]
+                || {
+                    for col in c.chunks_exact_mut(bias.len()) {
+                        for (v, b) in col.iter_mut().zip(bias) {
+                            *v = relu(*v + b);
+                        }
+                    }
+                },
+            ),
+            Epilogue::ReluMask { h, bias_grad } => vectorized(
+                #[inline(always)]
+                || match bias_grad {
+                    Some(bg) => {
+                        bg.fill(0.0);
+                        let width = bg.len();
+                        for (gc, hc) in c.chunks_exact_mut(width).zip(h.chunks_exact(width)) {
+                            for ((gv, &hv), b) in gc.iter_mut().zip(hc).zip(bg.iter_mut()) {
+                                *gv = if hv > 0.0 { *gv } else { 0.0 };
+                                *b += *gv;
+                            }
+                        }
+                    }
+                    None => {
+                        // A select rather than a conditional store, so that the loop vectorises.
+                        for (gv, &hv) in c.iter_mut().zip(h) {
+                            *gv = if hv > 0.0 { *gv } else { 0.0 };
+                        }
+                    }
+                },
+            ),
+        }
+    }
+}
+
+/// `max(x, 0)`, with a NaN sent to 0.
+#[inline(always)]
+fn relu(x: f32) -> f32 {
+    if x > 0.0 { x } else { 0.0 }
 }
 
 /// Whether [`panel_gemm`] runs here: on x86-64 with AVX2 and FMA, or AVX-512.
@@ -144,8 +222,19 @@ pub(crate) fn has_fma_kernel() -> bool {
 /// transposed view, as in an input gradient `W^T dz`), `a` is first copied column-major into
 /// `scratch` (at least `a.rows * a.cols` long), so that the kernel reads its columns in place.
 pub(crate) fn sgemm_via(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, scratch: &mut [f32]) {
+    sgemm_via_then(c, a, b, scratch, Epilogue::Store);
+}
+
+/// [`sgemm_via`] followed by `epilogue` (see [`sgemm_then`]).
+pub(crate) fn sgemm_via_then(
+    c: &mut [f32],
+    a: MatRef<'_>,
+    b: MatRef<'_>,
+    scratch: &mut [f32],
+    epilogue: Epilogue<'_>,
+) {
     if a.rs == 1 || !has_fma_kernel() {
-        sgemm(c, a, b);
+        sgemm_then(c, a, b, epilogue);
         return;
     }
     let copy = &mut scratch[..a.rows * a.cols];
@@ -159,7 +248,7 @@ pub(crate) fn sgemm_via(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, scratch: &m
             }
         },
     );
-    sgemm(c, MatRef::col_major(copy, a.rows, a.cols), b);
+    sgemm_then(c, MatRef::col_major(copy, a.rows, a.cols), b, epilogue);
 }
 
 /// Rows of `c` per block of [`panel_gemm`], in SIMD vectors: 4 with 16 lanes (AVX-512, 64 rows,
@@ -182,34 +271,49 @@ const BLOCK_COLUMNS: usize = 4;
 /// Every element of `c` is the chain `fma(a[i, k-1], b[k-1, j], ... fma(a[i, 0], b[0, j], 0))`
 /// in order of `p`, whatever the SIMD width and the block it falls in (the rows left over at the
 /// edge use the same chain in scalar fused multiply-adds), so the result is the same on AVX2 and
-/// AVX-512.
-fn panel_gemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>) {
+/// AVX-512. The `epilogue` is applied to each block in registers, with the same floats as
+/// [`Epilogue::apply`] (a bias gradient is summed over the columns in order: the panels go
+/// through the columns in order, and each adds its columns in order).
+fn panel_gemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, epilogue: Epilogue<'_>) {
     struct Op<'a> {
         c: &'a mut [f32],
         a: MatRef<'a>,
         b: MatRef<'a>,
+        epilogue: Epilogue<'a>,
     }
     impl pulp::WithSimd for Op<'_> {
         type Output = ();
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, simd: S) {
-            let Op { c, a, b } = self;
+            let Op {
+                c,
+                a,
+                b,
+                mut epilogue,
+            } = self;
             let m = a.rows;
             let c = &mut c[..m * b.cols];
+            if let Epilogue::ReluMask {
+                bias_grad: Some(bg),
+                ..
+            } = &mut epilogue
+            {
+                bg.fill(0.0);
+            }
             let mut b_panel = [0.0f32; PANEL_STEPS * BLOCK_COLUMNS];
             let mut j = 0;
             while j + BLOCK_COLUMNS <= b.cols {
-                panel::<S, BLOCK_COLUMNS>(simd, c, a, b, j, &mut b_panel);
+                panel::<S, BLOCK_COLUMNS>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
                 j += BLOCK_COLUMNS;
             }
             while j < b.cols {
-                panel::<S, 1>(simd, c, a, b, j, &mut b_panel);
+                panel::<S, 1>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
                 j += 1;
             }
         }
     }
     debug_assert_eq!(a.rs, 1);
-    ARCH.dispatch(Op { c, a, b });
+    ARCH.dispatch(Op { c, a, b, epilogue });
 }
 
 /// Columns `j..j + N` of `c = a * b` (see [`panel_gemm`]).
@@ -221,6 +325,7 @@ fn panel<S: pulp::Simd, const N: usize>(
     b: MatRef<'_>,
     j: usize,
     b_panel: &mut [f32; PANEL_STEPS * BLOCK_COLUMNS],
+    epilogue: &mut Epilogue<'_>,
 ) {
     let lanes = S::F32_LANES;
     let m = a.rows;
@@ -228,14 +333,14 @@ fn panel<S: pulp::Simd, const N: usize>(
     let mut i = 0;
     while i + rows <= m {
         if block_vectors(lanes) == 4 {
-            block::<S, 4, N>(simd, c, a, b, i, j, b_panel);
+            block::<S, 4, N>(simd, c, a, b, i, j, b_panel, epilogue);
         } else {
-            block::<S, 2, N>(simd, c, a, b, i, j, b_panel);
+            block::<S, 2, N>(simd, c, a, b, i, j, b_panel, epilogue);
         }
         i += rows;
     }
     while i + lanes <= m {
-        block::<S, 1, N>(simd, c, a, b, i, j, b_panel);
+        block::<S, 1, N>(simd, c, a, b, i, j, b_panel, epilogue);
         i += lanes;
     }
     for i in i..m {
@@ -244,7 +349,18 @@ fn panel<S: pulp::Simd, const N: usize>(
             for p in 0..a.cols {
                 acc = a.data[i + p * a.cs].mul_add(b.data[p * b.rs + jj * b.cs], acc);
             }
-            c[i + jj * m] = acc;
+            let at = i + jj * m;
+            c[at] = match epilogue {
+                Epilogue::Store => acc,
+                Epilogue::BiasRelu(bias) => relu(acc + bias[i]),
+                Epilogue::ReluMask { h, bias_grad } => {
+                    let g = if h[at] > 0.0 { acc } else { 0.0 };
+                    if let Some(bg) = bias_grad {
+                        bg[i] += g;
+                    }
+                    g
+                }
+            };
         }
     }
 }
@@ -253,9 +369,11 @@ fn panel<S: pulp::Simd, const N: usize>(
 /// inner loop reads them without bounds checks, whatever `b`'s strides.
 const PANEL_STEPS: usize = 128;
 
-/// Rows `i..i + V * lanes` by columns `j..j + N` of `c = a * b` (see [`panel_gemm`]).
+/// Rows `i..i + V * lanes` by columns `j..j + N` of `c = a * b`, with the epilogue applied (see
+/// [`panel_gemm`]).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // `p` indexes `a`'s columns and `b`'s together
+#[allow(clippy::too_many_arguments)] // the block's place in `c`, its operands and scratch
 fn block<S: pulp::Simd, const V: usize, const N: usize>(
     simd: S,
     c: &mut [f32],
@@ -264,6 +382,7 @@ fn block<S: pulp::Simd, const V: usize, const N: usize>(
     i: usize,
     j: usize,
     b_panel: &mut [f32; PANEL_STEPS * BLOCK_COLUMNS],
+    epilogue: &mut Epilogue<'_>,
 ) {
     let lanes = S::F32_LANES;
     let m = a.rows;
@@ -288,11 +407,46 @@ fn block<S: pulp::Simd, const V: usize, const N: usize>(
     } else {
         block_strided::<S, V, N>(simd, &mut acc, a, b, i, j, b_panel);
     }
+    let load = |from: &[f32]| -> S::f32s {
+        pulp::bytemuck::pod_read_unaligned(pulp::bytemuck::cast_slice(&from[..lanes]))
+    };
+    let store = |to: &mut [f32], value: &S::f32s| {
+        pulp::bytemuck::cast_slice_mut::<f32, u8>(&mut to[..lanes])
+            .copy_from_slice(pulp::bytemuck::bytes_of(value));
+    };
+    let zero = simd.splat_f32s(0.0);
+    match epilogue {
+        Epilogue::Store => {}
+        Epilogue::BiasRelu(bias) => {
+            for (v, row_acc) in acc.iter_mut().enumerate() {
+                let bv = load(&bias[i + v * lanes..]);
+                for value in row_acc.iter_mut() {
+                    let x = simd.add_f32s(*value, bv);
+                    *value = simd.select_f32s(simd.greater_than_f32s(x, zero), x, zero);
+                }
+            }
+        }
+        Epilogue::ReluMask { h, bias_grad } => {
+            for (v, row_acc) in acc.iter_mut().enumerate() {
+                for (jj, value) in row_acc.iter_mut().enumerate() {
+                    let hv = load(&h[i + v * lanes + (j + jj) * m..]);
+                    *value = simd.select_f32s(simd.greater_than_f32s(hv, zero), *value, zero);
+                }
+                if let Some(bg) = bias_grad {
+                    // The block's columns in order, onto the sums of the columns before them.
+                    let at = i + v * lanes;
+                    let mut sum = load(&bg[at..]);
+                    for value in row_acc.iter() {
+                        sum = simd.add_f32s(sum, *value);
+                    }
+                    store(&mut bg[at..], &sum);
+                }
+            }
+        }
+    }
     for (v, row_acc) in acc.iter().enumerate() {
         for (jj, value) in row_acc.iter().enumerate() {
-            let at = i + v * lanes + (j + jj) * m;
-            pulp::bytemuck::cast_slice_mut::<f32, u8>(&mut c[at..at + lanes])
-                .copy_from_slice(pulp::bytemuck::bytes_of(value));
+            store(&mut c[i + v * lanes + (j + jj) * m..], value);
         }
     }
 }
@@ -562,13 +716,81 @@ mod tests {
                 b_strided,
             ] {
                 let mut c = vec![f32::NAN; m * n];
-                panel_gemm(&mut c, a, b);
+                panel_gemm(&mut c, a, b, Epilogue::Store);
                 let want = fused_chain(a, b);
                 assert!(
                     c.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()),
                     "{m}x{k} by {k}x{n} (b strides {} {}): not the fused chain",
                     b.rs,
                     b.cs
+                );
+            }
+        }
+    }
+
+    /// The epilogues in the kernel's registers give the same floats as the separate pass over the
+    /// product, bias gradients included, for shapes with leftover vectors, rows and columns.
+    #[test]
+    fn epilogues_in_the_kernel_match_the_separate_pass() {
+        if !has_fma_kernel() {
+            eprintln!("no AVX2/FMA on this CPU: panel_gemm does not run here, nothing to check");
+            return;
+        }
+        let mut rng = hac_core::Rng::seed_from(8);
+        let mut uniform =
+            |len: usize| -> Vec<f32> { (0..len).map(|_| rng.uniform(-1.0, 1.0)).collect() };
+        for (m, k, n) in [
+            (64, 64, 256),
+            (64, 5, 9),
+            (37, 13, 6),
+            (100, 20, 17),
+            (16, 64, 1),
+        ] {
+            let (a_data, b_data) = (uniform(m * k), uniform(k * n));
+            let (a, b) = (
+                MatRef::col_major(&a_data, m, k),
+                MatRef::col_major(&b_data, k, n),
+            );
+            let mut bias = uniform(m);
+            // A NaN in a pre-activation becomes 0, in the kernel as in the pass.
+            bias[m / 2] = f32::NAN;
+            // About half the ReLU outputs are 0.
+            let h: Vec<f32> = uniform(m * n).iter().map(|v| v.max(0.0)).collect();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+
+            let mut plain = vec![0.0; m * n];
+            panel_gemm(&mut plain, a, b, Epilogue::Store);
+
+            let mut want = plain.clone();
+            Epilogue::BiasRelu(&bias).apply(&mut want);
+            let mut got = vec![f32::NAN; m * n];
+            panel_gemm(&mut got, a, b, Epilogue::BiasRelu(&bias));
+            assert_eq!(bits(&got), bits(&want), "bias + ReLU, {m}x{k} by {k}x{n}");
+            assert!(got.iter().all(|v| *v >= 0.0));
+
+            for with_bias_grad in [false, true] {
+                let (mut want_bg, mut got_bg) = (vec![f32::NAN; m], vec![f32::NAN; m]);
+                let mut want = plain.clone();
+                Epilogue::ReluMask {
+                    h: &h,
+                    bias_grad: with_bias_grad.then_some(&mut want_bg[..]),
+                }
+                .apply(&mut want);
+                let mut got = vec![f32::NAN; m * n];
+                panel_gemm(
+                    &mut got,
+                    a,
+                    b,
+                    Epilogue::ReluMask {
+                        h: &h,
+                        bias_grad: with_bias_grad.then_some(&mut got_bg[..]),
+                    },
+                );
+                assert_eq!(bits(&got), bits(&want), "ReLU mask, {m}x{k} by {k}x{n}");
+                assert_eq!(
+                    bits(&got_bg),
+                    bits(&want_bg),
+                    "bias gradient, {m}x{k} by {k}x{n}"
                 );
             }
         }

@@ -9,8 +9,8 @@ use hac_core::Rng;
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::{
-    MatRef, SGEMM_MIN_DIM, axpy, dot, fits_panel, fits_sgemm, sgemm, sgemm_via, transpose,
-    vectorized,
+    Epilogue, MatRef, SGEMM_MIN_DIM, axpy, dot, fits_panel, fits_sgemm, sgemm, sgemm_then,
+    sgemm_via_then, transpose, vectorized,
 };
 
 /// Half-width of the output layer's initial weights and biases: small, so that the network
@@ -36,16 +36,18 @@ impl Dense {
         }
     }
 
-    /// `z = W x` (no bias) for the `n` columns of `x`.
-    fn mul(&self, x: &[f32], n: usize, z: &mut [f32], packed: &mut [f32]) {
+    /// `z = W x` (no bias) for the `n` columns of `x`, then `epilogue` on `z`.
+    fn mul(&self, x: &[f32], n: usize, z: &mut [f32], packed: &mut [f32], epilogue: Epilogue<'_>) {
         let (inp, out) = (self.inp, self.out);
         // A first layer of a few inputs too, on a batch (a single sample takes the vector loop).
         if fits_sgemm(out, inp, n) || fits_panel(out, n) {
-            sgemm(
+            sgemm_then(
                 z,
                 MatRef::col_major(&self.w, out, inp),
                 MatRef::col_major(x, inp, n),
+                epilogue,
             );
+            return;
         } else if out < SGEMM_MIN_DIM && out < inp {
             // Few outputs (the output layer): one dot product per output over a row of W.
             let wt = &mut packed[..inp * out];
@@ -74,9 +76,11 @@ impl Dense {
                 },
             );
         }
+        epilogue.apply(&mut z[..out * n]);
     }
 
-    /// `dx = W[:, rows]^T dz`: the gradient with respect to the input rows `rows`.
+    /// `dx = W[:, rows]^T dz`: the gradient with respect to the input rows `rows`, then
+    /// `epilogue` on `dx`.
     fn mul_transposed(
         &self,
         dz: &[f32],
@@ -84,18 +88,21 @@ impl Dense {
         rows: Range<usize>,
         dx: &mut [f32],
         packed: &mut [f32],
+        epilogue: Epilogue<'_>,
     ) {
         let (inp, out, r) = (self.inp, self.out, rows.len());
         // Columns `rows` of W: an `out x r` column-major block.
         let w_cols = &self.w[rows.start * out..rows.end * out];
         // The input gradient of a layer of a few outputs too (the output layer), on a batch.
         if fits_sgemm(r, out, n) || fits_panel(r, n) {
-            sgemm_via(
+            sgemm_via_then(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
                 MatRef::col_major(dz, out, n),
                 packed,
+                epilogue,
             );
+            return;
         } else if r <= out {
             vectorized(
                 #[inline(always)]
@@ -123,6 +130,7 @@ impl Dense {
                 },
             );
         }
+        epilogue.apply(&mut dx[..r * n]);
     }
 
     /// Sets this gradient layer's weights to `dz x^T`, summed over the `n` samples.
@@ -265,11 +273,11 @@ impl Mlp {
             let (below, above) = ws.acts.split_at_mut(l + 1);
             let x = &below[l][..layer.inp * n];
             let z = &mut above[0][..layer.out * n];
-            layer.mul(x, n, z, &mut ws.packed);
             if l == last {
+                layer.mul(x, n, z, &mut ws.packed, Epilogue::Store);
                 add_bias(z, &layer.b);
             } else {
-                add_bias_relu(z, &layer.b);
+                layer.mul(x, n, z, &mut ws.packed, Epilogue::BiasRelu(&layer.b));
             }
         }
     }
@@ -324,15 +332,16 @@ impl Mlp {
                 g.layers[l].set_weight_grad(dz, x, n, packed);
             }
             if l > 0 {
+                // Through the ReLU of the layer below, whose output is this layer's input.
                 let dx = &mut below[..layer.inp * n];
-                layer.mul_transposed(dz, n, 0..layer.inp, dx, packed);
                 let bias_grad = grads
                     .as_deref_mut()
                     .map(|g| g.layers[l - 1].b.as_mut_slice());
-                relu_backward(dx, x, bias_grad);
+                let relu = Epilogue::ReluMask { h: x, bias_grad };
+                layer.mul_transposed(dz, n, 0..layer.inp, dx, packed, relu);
             } else if !input_rows.is_empty() {
                 let dx = &mut in_grad[..input_rows.len() * n];
-                layer.mul_transposed(dz, n, input_rows.clone(), dx, packed);
+                layer.mul_transposed(dz, n, input_rows.clone(), dx, packed, Epilogue::Store);
             }
         }
         *in_grad_rows = input_rows.len();
@@ -595,46 +604,6 @@ fn add_bias(z: &mut [f32], b: &[f32]) {
             for col in z.chunks_exact_mut(b.len()) {
                 for (v, b) in col.iter_mut().zip(b) {
                     *v += b;
-                }
-            }
-        },
-    );
-}
-
-fn add_bias_relu(z: &mut [f32], b: &[f32]) {
-    vectorized(
-        #[inline(always)]
-        || {
-            for col in z.chunks_exact_mut(b.len()) {
-                for (v, b) in col.iter_mut().zip(b) {
-                    let x = *v + b;
-                    *v = if x > 0.0 { x } else { 0.0 };
-                }
-            }
-        },
-    );
-}
-
-/// Turns `g`, the gradient with respect to a hidden layer's ReLU output `h`, into the gradient
-/// with respect to its pre-activation; with `bias_grad`, also sets that to its row sums.
-fn relu_backward(g: &mut [f32], h: &[f32], bias_grad: Option<&mut [f32]>) {
-    vectorized(
-        #[inline(always)]
-        || match bias_grad {
-            Some(bg) => {
-                bg.fill(0.0);
-                let width = bg.len();
-                for (gc, hc) in g.chunks_exact_mut(width).zip(h.chunks_exact(width)) {
-                    for ((gv, &hv), b) in gc.iter_mut().zip(hc).zip(bg.iter_mut()) {
-                        *gv = if hv > 0.0 { *gv } else { 0.0 };
-                        *b += *gv;
-                    }
-                }
-            }
-            None => {
-                // A select rather than a conditional store, so that the loop vectorises.
-                for (gv, &hv) in g.iter_mut().zip(h) {
-                    *gv = if hv > 0.0 { *gv } else { 0.0 };
                 }
             }
         },
