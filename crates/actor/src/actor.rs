@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use hac_agent::{RunConfig, RunConfigError, test_episodes};
+use hac_agent::{RunConfig, RunConfigError, play_episodes};
 use hac_core::{Episodes, GaussianExploration, Mode, Rng};
 use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
 use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
@@ -462,13 +462,14 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let s = &mut self.s;
         let episodes = s.run.agent.test_episodes.max(1);
         let mut successes = 0u32;
-        let rate = test_episodes(
+        let rate = play_episodes(
             &mut s.episodes,
             s.env.as_mut(),
             policy,
             &mut s.exploration,
             &mut s.test_rng,
             episodes,
+            Mode::Test,
             |outcome, _, _| successes += u32::from(outcome.success),
         );
         let recorded = self

@@ -291,31 +291,8 @@ pub fn evaluate(
     )
 }
 
-/// Runs `episodes` greedy test episodes of `policy`; returns the success rate. The rollout never
-/// consults `exploration` in test mode.
-pub fn test_episodes(
-    rollout: &mut Episodes,
-    env: &mut dyn Env,
-    agent: &mut impl Policy,
-    exploration: &mut impl Exploration,
-    rng: &mut Rng,
-    episodes: usize,
-    on_episode: impl FnMut(&EpisodeOutcome, &[f32], &Episodes),
-) -> f32 {
-    play_episodes(
-        rollout,
-        env,
-        agent,
-        exploration,
-        rng,
-        episodes,
-        Mode::Test,
-        on_episode,
-    )
-}
-
-/// Runs `episodes` episodes of `policy` in `mode` (in `Mode::Train` with `exploration`'s
-/// behaviour policy), storing nothing; calls `on_episode` after each with its outcome, the final
+/// Runs `episodes` episodes of `policy` in `mode` (greedy test episodes in `Mode::Test`, which
+/// never consults `exploration`; its behaviour policy in `Mode::Train`), storing nothing; calls `on_episode` after each with its outcome, the final
 /// state and the rollout; returns the success rate.
 #[allow(clippy::too_many_arguments)] // the rollout's collaborators, as `Episodes::run_episode`
 pub fn play_episodes(

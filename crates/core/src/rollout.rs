@@ -113,7 +113,7 @@ pub struct EpisodeOutcome {
 /// how many attempts it made, and (in training) how its subgoal tests went. The diagnostic of
 /// a hierarchy that does not learn: it says which level fails to reach the goals the level above
 /// sets it (`hac eval` prints it per level).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub struct LevelCounts {
     /// Times the level was given a goal and ran until it returned control upward.
     pub calls: u64,
@@ -144,6 +144,12 @@ impl LevelCounts {
     /// The share of calls that reached the level's goal (0 with no calls).
     pub fn reached_rate(&self) -> f64 {
         ratio(self.reached, self.calls)
+    }
+
+    /// The share of calls that used all `H` attempts without reaching the goal (0 with no
+    /// calls).
+    pub fn maxed_out_rate(&self) -> f64 {
+        ratio(self.maxed_out, self.calls)
     }
 
     /// The share of tested subgoals that were penalised (0 with none tested).

@@ -233,7 +233,7 @@ impl RunDir {
             &path.join("config.toml"),
             toml::to_string(config)?.as_bytes(),
         )?;
-        let csv_path = path.join("curve.csv");
+        let csv_path = path.join(CURVE_FILE);
         let mut text = RoundReport::csv_header(config.levels);
         text.push('\n');
         for report in curve {
@@ -350,6 +350,7 @@ impl RunDir {
 }
 
 const SUMMARY_FILE: &str = "summary.json";
+const CURVE_FILE: &str = "curve.csv";
 
 /// Reads the `summary.json` of the run in `run`: written last, by [`RunDir::finish`], so a run
 /// without one did not get there (it was killed, or is still training). A run stopped by
@@ -363,7 +364,7 @@ pub fn load_summary(run: &Path) -> Result<Summary> {
 /// Reads the `curve.csv` of the run in `run`, a run of `levels` levels: one report per test
 /// round, as [`RoundReport::from_csv_row`] parses it back.
 pub fn load_curve(run: &Path, levels: usize) -> Result<Vec<RoundReport>> {
-    let path = run.join("curve.csv");
+    let path = run.join(CURVE_FILE);
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines();

@@ -665,10 +665,9 @@ fn eval(args: EvalArgs) -> Result<()> {
             total.add(this);
         }
         if args.per_episode {
-            let levels: Vec<_> = this_episode.iter().map(level_counts_json).collect();
             println!(
                 "{}",
-                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "final_state": state, "levels": levels})
+                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "final_state": state, "levels": this_episode})
             );
         }
         index += 1;
@@ -718,10 +717,9 @@ fn eval(args: EvalArgs) -> Result<()> {
         "greedy test"
     };
     if args.json {
-        let levels: Vec<_> = totals.iter().map(level_counts_json).collect();
         println!(
             "{}",
-            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "per_level": if counted { serde_json::json!(levels) } else { serde_json::Value::Null }})
+            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "per_level": counted.then_some(&totals)})
         );
     } else {
         println!(
@@ -747,12 +745,7 @@ fn level_counts_line(level: usize, t: &LevelCounts) -> String {
         "level {level}: {} calls, goal reached in {:.1}%, maxed out in {:.1}%, {:.1} attempts per call",
         t.calls,
         100.0 * t.reached_rate(),
-        100.0
-            * if t.calls == 0 {
-                0.0
-            } else {
-                t.maxed_out as f64 / t.calls as f64
-            },
+        100.0 * t.maxed_out_rate(),
         t.attempts_per_call()
     );
     if t.tested > 0 {
@@ -763,9 +756,4 @@ fn level_counts_line(level: usize, t: &LevelCounts) -> String {
         ));
     }
     line
-}
-
-/// One level's [`LevelCounts`] in `hac eval`'s JSON.
-fn level_counts_json(t: &LevelCounts) -> serde_json::Value {
-    serde_json::json!({"calls": t.calls, "reached": t.reached, "maxed_out": t.maxed_out, "attempts": t.attempts, "tested": t.tested, "penalties": t.penalties})
 }
