@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use hac_agent::{RunConfig, RunConfigError, play_episodes};
 use hac_core::{Episodes, GaussianExploration, Mode, Rng};
 use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
+use hac_transport::{ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, WeightsSource};
 
 use crate::{Adder, SnapshotPolicy};
 
@@ -100,6 +100,10 @@ pub struct ActorSummary {
     /// skipped, acting on the last usable ones.
     pub unusable_weights: u64,
 }
+
+/// Set apart the family of an evaluator's test-round streams ([`Rng::stream`]) from that of
+/// the training episodes under turns (the run's seed itself).
+const TEST_STREAMS: u64 = 0x7e57_7e57_7e57_7e57;
 
 /// One evaluation the actor ran and reported.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -220,7 +224,9 @@ enum WeightsGate {
     /// the paper's schedule.
     Lockstep,
     /// An episode turn from the learner (`episodes_in_flight` > 0), then the weights it names;
-    /// once the actor's own episode budget is spent, as `Lag`.
+    /// the episode draws from the run seed's streams of the index the turn names. With one
+    /// episode in flight, the run is then the same whichever trainers play it. Once the actor's
+    /// own episode budget is spent, as `Lag`.
     Turns { max_lag: u64 },
     /// Any weights at most this many versions behind the learner's newest.
     Lag { max_lag: u64 },
@@ -244,6 +250,8 @@ struct NextWeights {
     snapshot: Arc<WeightsSnapshot>,
     /// The learner granted this actor an episode turn for it.
     holding_turn: bool,
+    /// The index of the episode the turn is for ([`GrantedTurn::episode`]).
+    episode: Option<u64>,
 }
 
 struct Actor<'a, F> {
@@ -305,10 +313,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         let snapshot = match self.s.gate {
             WeightsGate::Lockstep => self.wait_weights(|w, _| w.episodes >= sent)?,
             WeightsGate::Turns { .. } if budget_left => {
-                return Ok(self.wait_turn_and_weights()?.map(|snapshot| NextWeights {
-                    snapshot,
-                    holding_turn: true,
-                }));
+                return self.wait_turn_and_weights();
             }
             WeightsGate::Turns { max_lag } | WeightsGate::Lag { max_lag } => {
                 self.wait_weights(|w, newest| w.version.saturating_add(max_lag) >= newest)?
@@ -317,6 +322,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
         Ok(snapshot.map(|snapshot| NextWeights {
             snapshot,
             holding_turn: false,
+            episode: None,
         }))
     }
 
@@ -342,6 +348,7 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             let Some(NextWeights {
                 snapshot,
                 holding_turn,
+                episode,
             }) = self.next_weights(sent)?
             else {
                 return Ok(());
@@ -371,15 +378,27 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
             if max.is_some_and(|m| sent >= m) || (self.interrupted() && !holding_turn) {
                 return Ok(());
             }
-            self.play_episode(&mut p)?;
+            self.play_episode(&mut p, episode)?;
             policy = Some(p);
             self.wait_acked()?;
         }
     }
 
-    /// One training episode with `p`, its transitions and its end sent to the learner.
-    fn play_episode(&mut self, p: &mut SnapshotPolicy) -> Result<(), ActorError> {
+    /// One training episode with `p`, its transitions and its end sent to the learner. Under
+    /// episode turns, `episode` is the index the learner gave it: the episode draws from the
+    /// run seed's streams of that index instead of from this trainer's own, so that the run does
+    /// not depend on which trainer played which episode.
+    fn play_episode(
+        &mut self,
+        p: &mut SnapshotPolicy,
+        episode: Option<u64>,
+    ) -> Result<(), ActorError> {
         let s = &mut self.s;
+        if let Some(index) = episode {
+            let mut root = Rng::stream(s.run.seed, index);
+            s.exploration.reseed(root.fork());
+            s.train_rng = root.fork();
+        }
         s.adder.set_weights_version(p.version());
         let outcome = s.episodes.run_episode(
             s.env.as_mut(),
@@ -409,21 +428,21 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     /// trained on every episode the learner had then (already published when the turn was
     /// granted, so they arrive within milliseconds). If they do not arrive within
     /// [`TURN_WEIGHTS_WAIT`] (the learner restarted from an earlier checkpoint in between and
-    /// will never publish them), asks again: the learner answers for the weights it has. `None`
-    /// if interrupted first.
-    fn wait_turn_and_weights(&mut self) -> Result<Option<Arc<WeightsSnapshot>>, ActorError> {
+    /// will never publish them), asks again: the learner answers for the weights it has. The
+    /// weights with the turn's episode index; `None` if interrupted first.
+    fn wait_turn_and_weights(&mut self) -> Result<Option<NextWeights>, ActorError> {
         loop {
             // Short waits, so that an interrupt is noticed.
-            let trained = loop {
+            let GrantedTurn { trained, episode } = loop {
                 if self.interrupted() {
                     return Ok(None);
                 }
-                if let Some(trained) = self
+                if let Some(turn) = self
                     .link
                     .await_turn(Duration::from_millis(500))
                     .map_err(ActorError::Link)?
                 {
-                    break trained;
+                    break turn;
                 }
             };
             let granted = Instant::now();
@@ -437,7 +456,11 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                     .weights()
                     .wait_for(slice, |w| w.run_finished || w.episodes >= trained)
                 {
-                    return Ok(Some(w));
+                    return Ok(Some(NextWeights {
+                        snapshot: w,
+                        holding_turn: true,
+                        episode,
+                    }));
                 }
             }
             tracing::info!(
@@ -518,6 +541,10 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                     continue;
                 };
                 self.s.summary.weights_version = policy.version();
+                // The round's test episodes draw from the run seed's test streams of the
+                // episodes the weights were trained on: the same weights get the same round
+                // whichever evaluator plays it, in whatever order the actors registered.
+                self.s.test_rng = Rng::stream(self.s.run.seed ^ TEST_STREAMS, snapshot.episodes);
                 if self.evaluate(&mut policy, &snapshot)? {
                     last = (snapshot.learner_start, snapshot.version);
                     next_at = snapshot.episodes + every;

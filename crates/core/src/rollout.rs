@@ -78,6 +78,11 @@ impl GaussianExploration {
             noise_std,
         }
     }
+
+    /// Draws from `rng` from now on (one training episode's own stream under episode turns).
+    pub fn reseed(&mut self, rng: Rng) {
+        self.rng = rng;
+    }
 }
 
 impl Exploration for GaussianExploration {

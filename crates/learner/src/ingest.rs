@@ -95,10 +95,12 @@ impl Shared {
                         actor: msg.actor_id.to_string(),
                         source,
                     })?;
-                // Each actor starts at its own shard and moves on by one per batch: writers
-                // rarely meet, and one actor alone still fills every shard.
-                (actor.ordinal as usize + actor.batches as usize)
-                    % self.replay.table(level).shard_count()
+                // Batches go round the shards in the order they are stored, whoever sent them:
+                // writers rarely meet, one actor alone fills every shard, and under episode
+                // turns (one episode in flight) the shards' contents, so the minibatches drawn
+                // from them, do not depend on which trainer played which episode.
+                (counters.batches.load(Ordering::Relaxed)
+                    % self.replay.table(level).shard_count() as u64) as usize
             }
             IngestItemRef::Episode { env_steps, .. } => {
                 if env_steps > self.max_episode_actions {

@@ -4,7 +4,7 @@
 //! - [`Learner::ingest`] validates each message (known actor, current incarnation, sequence,
 //!   dimensions, finite values, level range), stores every `(actor, incarnation, sequence)`
 //!   exactly once (resends of stored messages count as duplicates and are acknowledged), and
-//!   routes batches to the actor's replay shard of the batch's level.
+//!   routes batches round the replay shards of the batch's level in the order they are stored.
 //! - One trainer thread per level takes updates from its [`RateLimiter`] (updates per ingested
 //!   episode, the paper's 40 by default), so training neither runs ahead of the data nor falls
 //!   behind it; [`Learner::wait_for_room`] is the backpressure ingest applies to actors. The
@@ -17,9 +17,11 @@
 //!   fresh weights appeared (the rule, in one place, is the `publisher` module's).
 //! - Episode turns ([`Learner::await_turn`], with `episodes_in_flight` > 0): trainers ask before
 //!   each episode and the learner lets at most that many training episodes be played or wait to
-//!   be trained on at once, over all actors, granting turns in the order asked. Many actors then
+//!   be trained on at once, over all actors, granting turns in the order asked, each for an
+//!   episode index from which the trainer draws that episode's random streams. Many actors then
 //!   act on weights as fresh as one lockstep actor does, instead of on weights that miss every
-//!   episode the others have in flight.
+//!   episode the others have in flight; with one episode in flight the run is the same whichever
+//!   trainers play it.
 //! - [`Learner::report_evaluation`] collects greedy test results into the learning curve; the
 //!   run finishes when a point reaches `stop_at` or the episode budget is trained (and
 //!   evaluated, if an evaluator is registered). The final snapshot says so, and actors stop.
@@ -117,8 +119,8 @@ pub use publisher::MAX_DIVERGED_IN_A_ROW;
 use publisher::{LevelSlot, Publisher};
 use registry::{Admitted, Registry};
 pub use status::{LearnerStatus, LevelStatus, Rates, RegisteredActor};
+use turns::{Grant, RunFinished, Turns};
 pub use turns::{MAX_TURN_WAIT, TURN_LEASE, Turn, TurnStatus};
-use turns::{RunFinished, Turns};
 pub use wal::{Wal, WalError, WalOptions, WalStatus};
 
 /// The learner's state, shared by its handle, the trainer threads and the transports' calls: the
@@ -763,15 +765,22 @@ impl Shared {
             let received = self.counters.episodes.load(Ordering::Acquire);
             received.saturating_sub(self.publisher.published_episodes())
         };
-        let granted = self
+        let received = || self.counters.episodes.load(Ordering::Acquire);
+        let grant = self
             .turns
-            .wait(actor_id, incarnation, wait, untrained, || {
+            .wait(actor_id, incarnation, wait, received, untrained, || {
                 self.is_finished()
             })
             .map_err(|RunFinished| IngestError::Finished)?;
+        let (granted, episode) = match grant {
+            Grant::Free => (true, None),
+            Grant::Episode(episode) => (true, Some(episode)),
+            Grant::NotYet => (false, None),
+        };
         Ok(Turn {
             granted,
             episodes: self.publisher.published_episodes(),
+            episode,
         })
     }
 

@@ -28,7 +28,7 @@ use crate::{IngestError, RATES_WINDOW, RateWindow, TokenBucket, Wal};
 pub(crate) struct ActorEntry {
     pub(crate) role: ActorRole,
     pub(crate) hostname: String,
-    /// Registration order of the actor id (stable across its incarnations): picks its shard.
+    /// Registration order of the actor id (stable across its incarnations): part of its seed.
     pub(crate) ordinal: u64,
     pub(crate) incarnation: u64,
     /// Every sequence up to this one is stored (0: none yet).

@@ -21,6 +21,22 @@ pub struct Turn {
     pub granted: bool,
     /// Training episodes every level had trained on (and published) when the answer was given.
     pub episodes: u64,
+    /// With turns on, the index of the episode the turn is for: episodes received plus turns
+    /// held when it was granted (with one episode in flight, the episodes trained on). The actor
+    /// draws that episode's random streams from it and the run's seed, so that which trainer
+    /// plays an episode does not change the episode. `None` when not granted or turns are off.
+    pub episode: Option<u64>,
+}
+
+/// What [`Turns::wait`] answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Grant {
+    /// Turns are off: play at once.
+    Free,
+    /// The turn for the episode with this index.
+    Episode(u64),
+    /// Not yet; ask again.
+    NotYet,
 }
 
 /// Episode turns in status.
@@ -61,15 +77,27 @@ struct Waiter {
 /// Who holds and who waits for episode turns.
 #[derive(Debug, Default)]
 struct TurnState {
-    /// Actor id -> (incarnation, when granted).
-    holders: HashMap<String, (u64, Instant)>,
+    /// Actor id -> its turn.
+    holders: HashMap<String, Held>,
     /// Places in line by ticket, served lowest first among the actors asking now. A place
     /// outlives the call that took it by [`PLACE_KEPT`], so that an actor asking again after
     /// its call timed out keeps its place instead of going to the back.
     waiting: BTreeMap<u64, Waiter>,
     next_ticket: u64,
+    /// The lowest episode index the next turn may be for: an index is never given twice, even
+    /// while an arriving episode is counted as received and still holds its turn.
+    next_episode: u64,
     granted: u64,
     expired: u64,
+}
+
+/// A turn granted and not used up yet.
+#[derive(Debug, Clone, Copy)]
+struct Held {
+    incarnation: u64,
+    granted_at: Instant,
+    /// The index of the episode it is for ([`Turn::episode`]).
+    episode: u64,
 }
 
 /// Episode turns: who holds one, who waits, and the counts for status. See the module docs.
@@ -118,7 +146,7 @@ impl Turns {
         if turns
             .holders
             .get(actor_id)
-            .is_some_and(|&(held, _)| held == incarnation)
+            .is_some_and(|held| held.incarnation == incarnation)
         {
             turns.holders.remove(actor_id);
         }
@@ -131,11 +159,12 @@ impl Turns {
         self.changed.notify_all();
     }
 
-    /// Waits up to `wait` (at most [`MAX_TURN_WAIT`]) for `actor_id`'s turn; `Ok(true)`:
-    /// granted (or already held by this incarnation), `Ok(false)`: not yet, the place in line
-    /// is kept for [`PLACE_KEPT`]. `untrained()` is the number of episodes received and not
-    /// yet trained on and published, `finished()` whether the run is over; both are read under
-    /// the turns' mutex and may only read atomics. Granted at once when turns are off.
+    /// Waits up to `wait` (at most [`MAX_TURN_WAIT`]) for `actor_id`'s turn: the episode it is
+    /// for when granted (or already held by this incarnation), [`Grant::NotYet`] with the place
+    /// in line kept for [`PLACE_KEPT`]. `received()` is the number of training episodes
+    /// received, `untrained()` those not yet trained on and published, `finished()` whether the
+    /// run is over; all three are read under the turns' mutex and may only read atomics.
+    /// [`Grant::Free`] at once when turns are off.
     ///
     /// Locks: the turns' mutex, released while waiting on the condition variable. The caller
     /// must hold no lock.
@@ -144,21 +173,20 @@ impl Turns {
         actor_id: &str,
         incarnation: u64,
         wait: Duration,
+        received: impl Fn() -> u64,
         untrained: impl Fn() -> u64,
         finished: impl Fn() -> bool,
-    ) -> Result<bool, RunFinished> {
+    ) -> Result<Grant, RunFinished> {
         let limit = u64::from(self.limit);
         if limit == 0 {
-            return Ok(true);
+            return Ok(Grant::Free);
         }
         let deadline = Instant::now() + wait.min(MAX_TURN_WAIT);
         let mut turns = self.state.lock();
-        if turns
-            .holders
-            .get(actor_id)
-            .is_some_and(|&(held, _)| held == incarnation)
+        if let Some(held) = turns.holders.get(actor_id)
+            && held.incarnation == incarnation
         {
-            return Ok(true);
+            return Ok(Grant::Episode(held.episode));
         }
         let kept = turns
             .waiting
@@ -205,7 +233,7 @@ impl Turns {
             let lease = self.lease;
             turns
                 .holders
-                .retain(|_, &mut (_, at)| now.duration_since(at) < lease);
+                .retain(|_, held| now.duration_since(held.granted_at) < lease);
             turns.expired += (before - turns.holders.len()) as u64;
             let in_flight = turns.holders.len() as u64 + untrained();
             let first = turns
@@ -214,16 +242,23 @@ impl Turns {
                 .find(|(_, w)| w.asking)
                 .map(|(&t, _)| t);
             if first == Some(ticket) && in_flight < limit {
-                turns
-                    .holders
-                    .insert(actor_id.to_string(), (incarnation, now));
+                let episode = (received() + turns.holders.len() as u64).max(turns.next_episode);
+                turns.next_episode = episode + 1;
+                turns.holders.insert(
+                    actor_id.to_string(),
+                    Held {
+                        incarnation,
+                        granted_at: now,
+                        episode,
+                    },
+                );
                 turns.granted += 1;
                 leave(&mut turns, false);
-                return Ok(true);
+                return Ok(Grant::Episode(episode));
             }
             if now >= deadline {
                 leave(&mut turns, true);
-                return Ok(false);
+                return Ok(Grant::NotYet);
             }
             // Publications and episode summaries wake waiters; the slice bounds how late an
             // expired lease is noticed.

@@ -100,17 +100,22 @@ fn one_turn_at_a_time_in_the_order_asked_each_with_weights_trained_on_every_epis
         granted,
         Turn {
             granted: true,
-            episodes: 0
+            episodes: 0,
+            episode: Some(0),
         }
     );
     // Asking again while holding the turn returns it; nobody else gets one meanwhile.
-    assert!(learner.await_turn("a", a, NOW).unwrap().granted);
+    assert_eq!(learner.await_turn("a", a, NOW).unwrap(), granted);
     let t0 = Instant::now();
-    assert!(
-        !learner
+    assert_eq!(
+        learner
             .await_turn("b", b, Duration::from_millis(50))
-            .unwrap()
-            .granted
+            .unwrap(),
+        Turn {
+            granted: false,
+            episodes: 0,
+            episode: None,
+        }
     );
     assert!(t0.elapsed() >= Duration::from_millis(50), "it waited");
 
@@ -136,6 +141,7 @@ fn one_turn_at_a_time_in_the_order_asked_each_with_weights_trained_on_every_epis
         b_turn.episodes, 1,
         "the weights to play with cover a's episode"
     );
+    assert_eq!(b_turn.episode, Some(1), "the run's second episode");
     assert!(learner.weights().latest().unwrap().episodes >= 1);
     thread::sleep(Duration::from_millis(100));
     assert!(!c_waits.is_finished(), "c waits for b's episode");
@@ -144,6 +150,7 @@ fn one_turn_at_a_time_in_the_order_asked_each_with_weights_trained_on_every_epis
     let (c_turn, c_at) = c_waits.join().unwrap();
     assert!(c_turn.granted && c_at > b_at);
     assert_eq!(c_turn.episodes, 2);
+    assert_eq!(c_turn.episode, Some(2));
 }
 
 #[test]
@@ -183,8 +190,9 @@ fn a_limit_of_two_lets_two_trainers_play_at_once() {
     let a = register(&learner, "a", ActorRole::Trainer);
     let b = register(&learner, "b", ActorRole::Trainer);
     let c = register(&learner, "c", ActorRole::Trainer);
-    assert!(learner.await_turn("a", a, NOW).unwrap().granted);
-    assert!(learner.await_turn("b", b, NOW).unwrap().granted);
+    // Each turn is for an episode of its own: the streams of two episodes in flight differ.
+    assert_eq!(learner.await_turn("a", a, NOW).unwrap().episode, Some(0));
+    assert_eq!(learner.await_turn("b", b, NOW).unwrap().episode, Some(1));
     assert!(
         !learner
             .await_turn("c", c, Duration::from_millis(20))
@@ -192,8 +200,10 @@ fn a_limit_of_two_lets_two_trainers_play_at_once() {
             .granted
     );
     play(&learner, "a", a, 0);
-    // a's episode is in flight until trained on; then c may go.
-    assert!(learner.await_turn("c", c, LONG).unwrap().granted);
+    // a's episode is in flight until trained on; then c may go, for the episode after b's.
+    let c_turn = learner.await_turn("c", c, LONG).unwrap();
+    assert!(c_turn.granted);
+    assert_eq!(c_turn.episode, Some(2));
 }
 
 #[test]

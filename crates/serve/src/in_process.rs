@@ -6,7 +6,7 @@ use std::time::Duration;
 use hac_learner::{IngestError, Learner, RegisterError, RoomError};
 use hac_proto::Published;
 use hac_proto::{Admission, Evaluation, IngestItem, IngestMessage, Registration, WeightsSnapshot};
-use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
+use hac_transport::{ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, WeightsSource};
 
 /// Direct calls into a shared [`Learner`]: registration as is, each item ingested synchronously
 /// after waiting for room (the learner's backpressure), weights read from the learner's own
@@ -92,12 +92,15 @@ impl ActorLink for InProcess {
         Ok(admission)
     }
 
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         let turn = self
             .learner
             .await_turn(&self.actor_id, self.incarnation, wait)
             .map_err(refused)?;
-        Ok(turn.granted.then_some(turn.episodes))
+        Ok(turn.granted.then_some(GrantedTurn {
+            trained: turn.episodes,
+            episode: turn.episode,
+        }))
     }
 
     /// The learner in this process cannot restart: a report is on the curve or refused.

@@ -15,7 +15,7 @@ use hac_learner::{Learner, LearnerOptions, RejectReason};
 use hac_proto::{ActorRole, IngestItem, IngestMessage, Registration, WeightsSnapshot, pb};
 use hac_serve::grpc::{ServerOptions, serve};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions, reject_reason};
-use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, WeightsSource};
+use hac_transport::{ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, WeightsSource};
 use prost::Message as _;
 use prost::bytes::BufMut as _;
 use tokio::sync::{mpsc, oneshot};
@@ -766,13 +766,19 @@ fn episode_turns_go_over_grpc_one_trainer_at_a_time() {
     );
     b.register(&registration_of("b")).unwrap();
 
-    assert_eq!(a.await_turn(Duration::ZERO).unwrap(), Some(0));
+    let turn = |trained, episode| {
+        Some(GrantedTurn {
+            trained,
+            episode: Some(episode),
+        })
+    };
+    assert_eq!(a.await_turn(Duration::ZERO).unwrap(), turn(0, 0));
     assert_eq!(b.await_turn(Duration::from_millis(50)).unwrap(), None);
     a.send(batch_item(&learner, 0, 4)).unwrap();
     a.send(episode()).unwrap();
     a.flush(WAIT).unwrap();
     // The tables are below one batch: the episode is covered at once, and b's turn comes.
-    assert_eq!(b.await_turn(WAIT).unwrap(), Some(1));
+    assert_eq!(b.await_turn(WAIT).unwrap(), turn(1, 1));
     assert_eq!(a.await_turn(Duration::from_millis(50)).unwrap(), None);
 
     // Malformed and refused requests get precise statuses and are counted.

@@ -1,5 +1,6 @@
 //! Trainers under episode turns (a learner with `episodes_in_flight`), over the in-process
-//! transport: several trainers share the turns, and a turn naming weights that never come (a
+//! transport: several trainers share the turns, with one episode in flight they train what one
+//! trainer alone does, bit for bit, and a turn naming weights that never come (a
 //! learner restarted from an earlier checkpoint in between) is asked for again instead of
 //! waited on forever. And over gRPC: an actor whose link registered again reports the incarnation
 //! it ended under.
@@ -15,9 +16,15 @@ use hac_proto::{ActorRole, Admission, IngestItem, Registration, WeightsSnapshot}
 use hac_serve::InProcess;
 use hac_serve::grpc::{ServerOptions, serve};
 use hac_transport::grpc::{GrpcLink, GrpcLinkOptions};
-use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
+use hac_transport::{
+    ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, LinkStats, WeightsSource,
+};
 
 fn learner(episodes_in_flight: u32) -> Arc<Learner> {
+    learner_of(episodes_in_flight, 1000, 1)
+}
+
+fn learner_of(episodes_in_flight: u32, episodes: u64, replay_shards: usize) -> Arc<Learner> {
     let mut agent = hac_envs::make("pendulum").unwrap().default_config(2);
     agent.batch_size = 16;
     agent.updates_per_episode = 2;
@@ -26,9 +33,9 @@ fn learner(episodes_in_flight: u32) -> Arc<Learner> {
         env: "pendulum".into(),
         levels: 2,
         seed: 4,
-        episodes: 1000,
+        episodes,
         stop_at: None,
-        replay_shards: 1,
+        replay_shards,
         max_actions: None,
         subgoal_bounds: None,
         agent,
@@ -73,6 +80,61 @@ fn three_trainers_share_one_turn_and_each_plays_its_episodes() {
     assert_eq!(status.turns.held, 0);
 }
 
+/// The run's weights once `trainers` trainers, `each` episodes apiece, have trained a learner
+/// with one episode in flight and three replay shards to its budget (all their episodes).
+fn trained_by(trainers: &[&str], each: u64) -> Vec<Vec<u8>> {
+    let learner = learner_of(1, trainers.len() as u64 * each, 3);
+    let handles: Vec<_> = trainers
+        .iter()
+        .map(|&id| {
+            let learner = learner.clone();
+            let id = id.to_string();
+            std::thread::spawn(move || {
+                let mut link = InProcess::new(learner);
+                run_actor(
+                    &mut link,
+                    &trainer(&id, each),
+                    &AtomicBool::new(false),
+                    |_| {},
+                )
+                .unwrap()
+            })
+        })
+        .collect();
+    let played: Vec<u64> = handles
+        .into_iter()
+        .map(|h| h.join().unwrap().episodes)
+        .collect();
+    assert_eq!(played, vec![each; trainers.len()]);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !learner.is_finished() {
+        assert!(Instant::now() < deadline, "the budget was never trained");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let status = learner.status();
+    assert_eq!(status.episodes, trainers.len() as u64 * each);
+    assert!(status.levels.iter().all(|l| l.updates > 0), "it trained");
+    learner.weights().latest().unwrap().levels.clone()
+}
+
+#[test]
+fn with_one_episode_in_flight_the_run_is_the_same_whichever_trainers_play_it() {
+    // Each episode draws from the run seed's streams of its index, and batches go round the
+    // replay shards in the order stored: one trainer or three, interleaved however their
+    // threads are scheduled, train the same networks bit for bit.
+    let alone = trained_by(&["a"], 12);
+    let three = trained_by(&["a", "b", "c"], 4);
+    assert!(
+        alone == three,
+        "one trainer and three trained different networks"
+    );
+    let six = trained_by(&["a", "b", "c", "d", "e", "f"], 2);
+    assert!(
+        alone == six,
+        "one trainer and six trained different networks"
+    );
+}
+
 /// The in-process link, except that its first turn names more trained episodes than the
 /// learner will ever have published (as a learner that has since restarted from an earlier
 /// checkpoint would have).
@@ -106,11 +168,16 @@ impl ActorLink for FirstTurnFromAnotherLearner {
         self.inner.register(registration)
     }
 
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         let turn = self.inner.await_turn(wait)?;
-        if turn.is_some() && self.stale_turns == 0 {
+        if let Some(turn) = turn
+            && self.stale_turns == 0
+        {
             self.stale_turns += 1;
-            return Ok(Some(1_000_000));
+            return Ok(Some(GrantedTurn {
+                trained: 1_000_000,
+                ..turn
+            }));
         }
         Ok(turn)
     }
@@ -192,7 +259,7 @@ impl ActorLink for SupersededOnce {
         self.inner.register(registration)
     }
 
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         self.inner.await_turn(wait)
     }
 

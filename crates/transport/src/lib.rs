@@ -100,6 +100,16 @@ pub trait WeightsSource {
     fn learner_version(&self) -> u64;
 }
 
+/// An episode turn the learner granted ([`ActorLink::await_turn`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GrantedTurn {
+    /// Play with weights trained on at least this many episodes.
+    pub trained: u64,
+    /// The index of the episode the turn is for, from which the actor draws the episode's
+    /// random streams (with the run's seed); `None` from a learner that sends none.
+    pub episode: Option<u64>,
+}
+
 /// The actor's side of a connection to the learner: an [`IngestSink`] and a [`WeightsSource`],
 /// with registration, episode turns, evaluation reports and the link's counters.
 pub trait ActorLink: IngestSink + WeightsSource {
@@ -108,10 +118,10 @@ pub trait ActorLink: IngestSink + WeightsSource {
     fn register(&mut self, registration: &Registration) -> Result<Admission, LinkError>;
 
     /// Episode turns (a learner with `episodes_in_flight` > 0; see the learner's `await_turn`):
-    /// waits up to about `wait` for this trainer's turn to play its next episode. `Some(n)`:
-    /// granted; play with weights trained on at least `n` episodes. `None`: not yet (ask
-    /// again). A link that had to register again answers `None` at once.
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError>;
+    /// waits up to about `wait` for this trainer's turn to play its next episode. `Some`:
+    /// granted. `None`: not yet (ask again). A link that had to register again answers `None`
+    /// at once.
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError>;
 
     /// Reports greedy test results of `weights` (their version and learner process). `true`:
     /// on the curve. `false`: dropped because the weights came from a learner process that has

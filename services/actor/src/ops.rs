@@ -17,7 +17,9 @@ use hac_transport::grpc::{
 };
 use hac_transport::metrics::{actor_metrics, serve_metrics};
 use hac_transport::security::{ClientTls, Token};
-use hac_transport::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
+use hac_transport::{
+    ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, LinkStats, WeightsSource,
+};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
@@ -256,7 +258,7 @@ impl ActorLink for Observed<'_> {
         Ok(admission)
     }
 
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         self.inner.await_turn(wait)
     }
 

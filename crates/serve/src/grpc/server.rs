@@ -647,6 +647,7 @@ impl pb::learner_server::Learner for LearnerGrpc {
         Ok(Response::new(pb::TurnReply {
             granted: turn.granted,
             episodes: turn.episodes,
+            episode: turn.episode,
         }))
     }
 }

@@ -50,7 +50,9 @@ use tonic::{Code, Status};
 use super::{reject_reason, until_set};
 use crate::held::Held;
 use crate::security::{BearerToken, ClientTls, EndpointError, Token, endpoint};
-use crate::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
+use crate::{
+    ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, LinkStats, WeightsSource,
+};
 
 /// The link's channel: every request carries the token, if any.
 type LinkChannel = InterceptedService<Channel, BearerToken>;
@@ -461,7 +463,7 @@ impl ActorLink for GrpcLink {
         "grpc"
     }
 
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         let shared = self.shared.clone();
         let channel = self.channel.clone();
         let wait_ms = u32::try_from(wait.as_millis()).unwrap_or(u32::MAX);
@@ -485,7 +487,10 @@ impl ActorLink for GrpcLink {
                 let status = match client.await_turn(request).await {
                     Ok(reply) => {
                         let reply = reply.into_inner();
-                        return Ok(reply.granted.then_some(reply.episodes));
+                        return Ok(reply.granted.then_some(GrantedTurn {
+                            trained: reply.episodes,
+                            episode: reply.episode,
+                        }));
                     }
                     Err(status) => status,
                 };

@@ -37,7 +37,9 @@ use super::{
 };
 use crate::grpc::{ConnectError, GrpcLink, GrpcLinkOptions};
 use crate::held::Held;
-use crate::{ActorLink, EvaluationOf, IngestSink, LinkError, LinkStats, WeightsSource};
+use crate::{
+    ActorLink, EvaluationOf, GrantedTurn, IngestSink, LinkError, LinkStats, WeightsSource,
+};
 
 /// Whether shared memory is required or only preferred.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -882,7 +884,7 @@ impl ActorLink for ShmLink {
     }
 
     /// Over the gRPC control link, like registration.
-    fn await_turn(&mut self, wait: Duration) -> Result<Option<u64>, LinkError> {
+    fn await_turn(&mut self, wait: Duration) -> Result<Option<GrantedTurn>, LinkError> {
         self.grpc.await_turn(wait)
     }
 
