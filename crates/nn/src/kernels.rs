@@ -258,11 +258,20 @@ const fn block_vectors(lanes: usize) -> usize {
     if lanes >= 16 { 4 } else { 2 }
 }
 
-/// Columns of `c` per block of [`panel_gemm`].
-const BLOCK_COLUMNS: usize = 4;
+/// Columns of `c` per block of [`panel_gemm`] for SIMD vectors of `lanes` floats: 4 with 16
+/// lanes (AVX-512: 4 x 4 accumulators), 6 with 8 (AVX2: 2 x 6 accumulators, the two vectors of
+/// `a` and the broadcast of `b` fill the 16 registers). Fused multiply-adds take 4-5 cycles on
+/// two ports, so a block needs at least 8-10 independent accumulators to keep both busy: 2 x 4
+/// on AVX2 left them waiting on their own results.
+const fn block_columns(lanes: usize) -> usize {
+    if lanes >= 16 { 4 } else { 6 }
+}
+
+/// The most columns of any block: the size of the copy of `b` a strided block reads.
+const BLOCK_COLUMNS: usize = 6;
 
 /// `c = a * b` for `a` with contiguous columns (`a.rs == 1`), by register blocks of
-/// `block_vectors` SIMD vectors of rows by [`BLOCK_COLUMNS`] columns: for each `p`, the block's
+/// `block_vectors` SIMD vectors of rows by `block_columns` columns: for each `p`, the block's
 /// rows of column `p` of `a` are loaded once and multiplied by `b[p, j]` of each of the block's
 /// columns, accumulating with fused multiply-adds. `a`'s columns are read in place, and so are
 /// `b`'s columns or rows where they are contiguous; only a `b` with neither is copied, a few
@@ -302,9 +311,15 @@ fn panel_gemm(c: &mut [f32], a: MatRef<'_>, b: MatRef<'_>, epilogue: Epilogue<'_
             }
             let mut b_panel = [0.0f32; PANEL_STEPS * BLOCK_COLUMNS];
             let mut j = 0;
-            while j + BLOCK_COLUMNS <= b.cols {
-                panel::<S, BLOCK_COLUMNS>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
-                j += BLOCK_COLUMNS;
+            if block_columns(S::F32_LANES) == 6 {
+                while j + 6 <= b.cols {
+                    panel::<S, 6>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
+                    j += 6;
+                }
+            }
+            while j + 4 <= b.cols {
+                panel::<S, 4>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
+                j += 4;
             }
             while j < b.cols {
                 panel::<S, 1>(simd, c, a, b, j, &mut b_panel, &mut epilogue);
