@@ -761,11 +761,8 @@ impl Shared {
                 return Err(IngestError::WrongRole(actor_id.to_string()));
             }
         }
-        let untrained = || {
-            let received = self.counters.episodes.load(Ordering::Acquire);
-            received.saturating_sub(self.publisher.published_episodes())
-        };
         let received = || self.counters.episodes.load(Ordering::Acquire);
+        let untrained = || received().saturating_sub(self.publisher.published_episodes());
         let grant = self
             .turns
             .wait(actor_id, incarnation, wait, received, untrained, || {

@@ -267,8 +267,8 @@ const fn block_columns(lanes: usize) -> usize {
     if lanes >= 16 { 4 } else { 6 }
 }
 
-/// The most columns of any block: the size of the copy of `b` a strided block reads.
-const BLOCK_COLUMNS: usize = 6;
+/// The most columns of any block (AVX2's): the size of the copy of `b` a strided block reads.
+const BLOCK_COLUMNS: usize = block_columns(8);
 
 /// `c = a * b` for `a` with contiguous columns (`a.rs == 1`), by register blocks of
 /// `block_vectors` SIMD vectors of rows by `block_columns` columns: for each `p`, the block's

@@ -58,21 +58,30 @@ fn trainer(id: &str, episodes: u64) -> ActorOptions {
     }
 }
 
-#[test]
-fn three_trainers_share_one_turn_and_each_plays_its_episodes() {
-    let learner = learner(1);
-    let handles: Vec<_> = ["a", "b", "c"]
-        .into_iter()
-        .map(|id| {
-            let learner = learner.clone();
+/// Runs one in-process trainer per id on `learner`, each for `each` episodes, all at once, and
+/// returns the episodes each played.
+fn play_trainers(learner: &Arc<Learner>, ids: &[&str], each: u64) -> Vec<u64> {
+    let handles: Vec<_> = ids
+        .iter()
+        .map(|&id| {
+            let mut link = InProcess::new(learner.clone());
+            let options = trainer(id, each);
             std::thread::spawn(move || {
-                let mut link = InProcess::new(learner);
-                run_actor(&mut link, &trainer(id, 4), &AtomicBool::new(false), |_| {}).unwrap()
+                run_actor(&mut link, &options, &AtomicBool::new(false), |_| {}).unwrap()
             })
         })
         .collect();
-    for handle in handles {
-        assert_eq!(handle.join().unwrap().episodes, 4);
+    handles
+        .into_iter()
+        .map(|h| h.join().unwrap().episodes)
+        .collect()
+}
+
+#[test]
+fn three_trainers_share_one_turn_and_each_plays_its_episodes() {
+    let learner = learner(1);
+    for played in play_trainers(&learner, &["a", "b", "c"], 4) {
+        assert_eq!(played, 4);
     }
     let status = learner.status();
     assert_eq!(status.episodes, 12);
@@ -84,27 +93,7 @@ fn three_trainers_share_one_turn_and_each_plays_its_episodes() {
 /// with one episode in flight and three replay shards to its budget (all their episodes).
 fn trained_by(trainers: &[&str], each: u64) -> Vec<Vec<u8>> {
     let learner = learner_of(1, trainers.len() as u64 * each, 3);
-    let handles: Vec<_> = trainers
-        .iter()
-        .map(|&id| {
-            let learner = learner.clone();
-            let id = id.to_string();
-            std::thread::spawn(move || {
-                let mut link = InProcess::new(learner);
-                run_actor(
-                    &mut link,
-                    &trainer(&id, each),
-                    &AtomicBool::new(false),
-                    |_| {},
-                )
-                .unwrap()
-            })
-        })
-        .collect();
-    let played: Vec<u64> = handles
-        .into_iter()
-        .map(|h| h.join().unwrap().episodes)
-        .collect();
+    let played = play_trainers(&learner, trainers, each);
     assert_eq!(played, vec![each; trainers.len()]);
     let deadline = Instant::now() + Duration::from_secs(60);
     while !learner.is_finished() {
