@@ -3,7 +3,7 @@
 
 use crate::hiro::{HiroConfig, HiroRollout};
 use crate::rollout::{EpisodeOutcome, Exploration, Hierarchy, LevelCounts, Policy};
-use crate::{AgentConfig, Env, EnvSpec, Mode, Rng, TransitionSink};
+use crate::{AgentConfig, Env, EnvSpec, Mode, Rng, TransitionSink, within_goal};
 
 /// Runs episodes of the run's algorithm; owns every buffer an episode needs.
 // One per actor, made once and never moved while it runs: the variants' sizes do not matter.
@@ -49,6 +49,40 @@ impl Episodes {
             Self::Hac(h) => h.end_goal(),
             Self::Hiro(h) => h.end_goal(),
         }
+    }
+
+    /// The end-goal projection of the current (or last) episode's first state.
+    pub fn start_achieved(&self) -> &[f32] {
+        match self {
+            Self::Hac(h) => h.start_achieved(),
+            Self::Hiro(h) => h.start_achieved(),
+        }
+    }
+
+    /// The end-goal projection of the current (or last) episode's last state.
+    pub fn final_achieved(&self) -> &[f32] {
+        match self {
+            Self::Hac(h) => h.final_achieved(),
+            Self::Hiro(h) => h.final_achieved(),
+        }
+    }
+
+    /// Whether the current (or last) episode moved what the end goal measures by more than the
+    /// end goal's thresholds (on some dimension, angles along the circle where the environment
+    /// says so): for pick-and-place, whether the block ended more than 3 cm from where it
+    /// started. Hindsight end goals differ from the start only in such episodes.
+    pub fn moved_end_goal(&self) -> bool {
+        let spec = match self {
+            Self::Hac(h) => h.spec(),
+            Self::Hiro(h) => h.spec(),
+        };
+        let (threshold, angles) = spec.goal_test(true);
+        !within_goal(
+            self.final_achieved(),
+            self.start_achieved(),
+            threshold,
+            angles,
+        )
     }
 
     /// Adds what each level did in the current (or last) episode to `totals` (one entry per

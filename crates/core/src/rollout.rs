@@ -221,6 +221,9 @@ pub struct Hierarchy {
     state: Vec<f32>,
     /// Scratch for goal checks.
     projected: Vec<f32>,
+    /// The end-goal projection of the episode's first state, and of its last.
+    start_achieved: Vec<f32>,
+    final_achieved: Vec<f32>,
     steps: usize,
     success: bool,
 }
@@ -277,6 +280,8 @@ impl Hierarchy {
             levels,
             state: vec![0.0; spec.state_dim],
             projected: vec![0.0; spec.end_goal_dim.max(spec.subgoal_dim())],
+            start_achieved: vec![0.0; spec.end_goal_dim],
+            final_achieved: vec![0.0; spec.end_goal_dim],
             steps: 0,
             success: false,
         }
@@ -289,6 +294,22 @@ impl Hierarchy {
     /// The end goal of the current (or last) episode.
     pub fn end_goal(&self) -> &[f32] {
         &self.levels[self.levels.len() - 1].goal
+    }
+
+    /// The end-goal projection of the current (or last) episode's first state: what the end
+    /// goal measured before the agent acted (`hac eval` compares it with the last state's).
+    pub fn start_achieved(&self) -> &[f32] {
+        &self.start_achieved
+    }
+
+    /// The end-goal projection of the current (or last) episode's last state.
+    pub fn final_achieved(&self) -> &[f32] {
+        &self.final_achieved
+    }
+
+    /// The spec of the environment this rollout was made for.
+    pub fn spec(&self) -> &EnvSpec {
+        &self.spec
     }
 
     /// What level `level` did in the current (or last) episode.
@@ -338,6 +359,7 @@ impl Hierarchy {
         sink: &mut dyn TransitionSink,
     ) -> EpisodeOutcome {
         self.state.copy_from_slice(env.state());
+        env.project_end_goal(&self.state, &mut self.start_achieved);
         self.steps = 0;
         self.success = false;
         for level in &mut self.levels {
@@ -354,6 +376,9 @@ impl Hierarchy {
         };
         let top = self.levels.len() - 1;
         self.run_level(&mut episode, top, false);
+        episode
+            .env
+            .project_end_goal(&self.state, &mut self.final_achieved);
         EpisodeOutcome {
             success: self.success,
             steps: self.steps,

@@ -418,8 +418,9 @@ struct EvalArgs {
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
-    /// Also print one JSON line per episode (success, primitive steps, end goal, final state,
-    /// what each level did).
+    /// Also print one JSON line per episode (success, primitive steps, end goal, the achieved
+    /// end goal at the first and the last state and whether it moved beyond the end goal's
+    /// thresholds, final state, what each level did).
     #[arg(long)]
     per_episode: bool,
     /// Play the behaviour policy of training instead of greedy episodes: exploration noise,
@@ -658,16 +659,19 @@ fn eval(args: EvalArgs) -> Result<()> {
     let mut index = 0usize;
     let mut totals = vec![LevelCounts::default(); run.levels];
     let mut this_episode = vec![LevelCounts::default(); run.levels];
+    let mut moved = 0usize;
     let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], rollout: &Episodes| {
         this_episode.fill(LevelCounts::default());
         rollout.add_level_counts(&mut this_episode);
         for (total, this) in totals.iter_mut().zip(&this_episode) {
             total.add(this);
         }
+        let moved_this = rollout.moved_end_goal();
+        moved += usize::from(moved_this);
         if args.per_episode {
             println!(
                 "{}",
-                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "final_state": state, "levels": this_episode})
+                serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "start_achieved": rollout.start_achieved(), "final_achieved": rollout.final_achieved(), "moved": moved_this, "final_state": state, "levels": this_episode})
             );
         }
         index += 1;
@@ -709,6 +713,7 @@ fn eval(args: EvalArgs) -> Result<()> {
             on_episode,
         )
     };
+    let moved_rate = moved as f64 / episodes.max(1) as f64;
     // HIRO's levels are not given goals in HAC's sense: its rollout counts nothing.
     let counted = totals.iter().any(|t| t.calls > 0);
     let kind = if args.behaviour {
@@ -719,7 +724,7 @@ fn eval(args: EvalArgs) -> Result<()> {
     if args.json {
         println!(
             "{}",
-            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "per_level": counted.then_some(&totals)})
+            serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "moved_rate": moved_rate, "per_level": counted.then_some(&totals)})
         );
     } else {
         println!(
@@ -729,6 +734,11 @@ fn eval(args: EvalArgs) -> Result<()> {
             run.levels,
             100.0 * success,
             episodes
+        );
+        println!(
+            "  achieved end goal moved beyond the end goal's thresholds (last state against \
+             first) in {:.1}% of the episodes",
+            100.0 * moved_rate
         );
         if counted {
             for (level, t) in totals.iter().enumerate().rev() {

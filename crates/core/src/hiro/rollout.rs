@@ -66,6 +66,8 @@ pub struct HiroRollout {
     achieved: Vec<f32>,
     next_achieved: Vec<f32>,
     end_projection: Vec<f32>,
+    /// The end-goal projection of the episode's first state.
+    start_achieved: Vec<f32>,
     action: Vec<f32>,
     segment: Segment,
     /// A high-level transition's steps, packed for [`HiroRollout::run_episode_packed`].
@@ -102,6 +104,7 @@ impl HiroRollout {
             achieved: vec![0.0; g],
             next_achieved: vec![0.0; g],
             end_projection: vec![0.0; spec.end_goal_dim],
+            start_achieved: vec![0.0; spec.end_goal_dim],
             action: vec![0.0; spec.action_dim()],
             segment: Segment::default(),
             packed: vec![0.0; StepsShape::of(spec, c).width()],
@@ -147,6 +150,21 @@ impl HiroRollout {
         &self.end_goal
     }
 
+    /// The end-goal projection of the current (or last) episode's first state.
+    pub fn start_achieved(&self) -> &[f32] {
+        &self.start_achieved
+    }
+
+    /// The end-goal projection of the current (or last) episode's last state.
+    pub fn final_achieved(&self) -> &[f32] {
+        &self.end_projection
+    }
+
+    /// The spec of the environment this rollout was made for.
+    pub fn spec(&self) -> &EnvSpec {
+        &self.spec
+    }
+
     /// Resets `env`, draws an end goal for `mode` and runs one episode. `policy` answers for
     /// level 1 (state, end goal -> relative goal) and level 0 (state, relative goal -> action);
     /// in `Mode::Train` `exploration` perturbs both and everything goes to `sink`, in
@@ -167,6 +185,8 @@ impl HiroRollout {
         let subgoal_angles = &self.angles;
         self.state.copy_from_slice(env.state());
         env.project_subgoal(&self.state, &mut self.achieved);
+        env.project_end_goal(&self.state, &mut self.start_achieved);
+        self.end_projection.copy_from_slice(&self.start_achieved);
         let (mut steps, mut success) = (0, false);
         while steps < self.spec.max_actions {
             if steps % self.c == 0 {
