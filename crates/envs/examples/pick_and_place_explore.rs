@@ -11,10 +11,16 @@
 //! Hindsight end goals are where the block ended up: in an episode that never moves it, every
 //! hindsight goal is the block's start, and the critics never see a goal that takes contact.
 //!
-//! `cargo run --release -p hac-envs --example pick_and_place_explore [EPISODES]`
+//! And what contact does to it: the share of episodes whose block was ever faster than 2 m/s
+//! (the hand itself peaks at 1.875 m/s), and whose block ended outside the hand's workspace (x or
+//! y beyond +-0.25 m: out of the gripper's reach for the rest of the episode, and beyond every
+//! end goal).
+//!
+//! `cargo run --release -p hac-envs --example pick_and_place_explore [EPISODES]
+//! [--max-corrective-velocity V]` (V: the physics setting of that name, m/s; default the task's)
 
 use hac_core::{Env, Rng};
-use hac_envs::pick_and_place::PickAndPlace;
+use hac_envs::pick_and_place::{PickAndPlace, PickAndPlacePhysics, WORKSPACE_HIGH};
 
 const ACTIONS: usize = 200;
 const NOISE: f32 = 0.1;
@@ -62,13 +68,27 @@ impl Behaviour {
 }
 
 fn main() {
-    let episodes: usize = std::env::args()
-        .nth(1)
-        .map_or(1000, |n| n.parse().expect("EPISODES is a number"));
-    let mut env = PickAndPlace::new();
-    println!("{episodes} episodes of {ACTIONS} actions each, from the task's own initial states");
-    println!("| behaviour | block moved > 5 mm | moved > 3 cm | lifted > 1 cm |");
-    println!("| --- | --- | --- | --- |");
+    let mut episodes = 1000;
+    let mut physics = PickAndPlacePhysics::default();
+    let mut args = std::env::args().skip(1);
+    while let Some(arg) = args.next() {
+        if arg == "--max-corrective-velocity" {
+            physics.max_corrective_velocity = args
+                .next()
+                .and_then(|v| v.parse().ok())
+                .expect("--max-corrective-velocity takes a speed in m/s");
+        } else {
+            episodes = arg.parse().expect("EPISODES is a number");
+        }
+    }
+    let mut env = PickAndPlace::with_physics(physics);
+    println!(
+        "{episodes} episodes of {ACTIONS} actions each, from the task's own initial states; {physics:?}"
+    );
+    println!(
+        "| behaviour | block moved > 5 mm | moved > 3 cm | lifted > 1 cm | block faster than 2 m/s | ended out of the hand's reach | fastest block |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
     for behaviour in [
         Behaviour::Uniform,
         Behaviour::Untrained {
@@ -90,6 +110,7 @@ fn main() {
     ] {
         let mut rng = Rng::seed_from(7);
         let (mut moved, mut moved_far, mut lifted) = (0, 0, 0);
+        let (mut fast, mut out, mut fastest) = (0, 0, 0.0f32);
         let mut action = [0.0f32; 4];
         for _ in 0..episodes {
             env.reset(&mut rng);
@@ -100,7 +121,7 @@ fn main() {
                 }
                 _ => [0.0; 4],
             };
-            let (mut farthest, mut highest) = (0.0f32, 0.0f32);
+            let (mut farthest, mut highest, mut peak) = (0.0f32, 0.0f32, 0.0f32);
             for _ in 0..ACTIONS {
                 behaviour.act(&mut rng, &constant, &mut action);
                 env.step(&action);
@@ -113,18 +134,27 @@ fn main() {
                     .sqrt();
                 farthest = farthest.max(d);
                 highest = highest.max(block[2] - start[2]);
+                let v = &env.state()[14..17];
+                peak = peak.max(v.iter().map(|v| v * v).sum::<f32>().sqrt());
             }
+            let end = &env.state()[4..6];
+            out +=
+                usize::from(end[0].abs() > WORKSPACE_HIGH[0] || end[1].abs() > WORKSPACE_HIGH[1]);
+            fast += usize::from(peak > 2.0);
+            fastest = fastest.max(peak);
             moved += usize::from(farthest > 0.005);
             moved_far += usize::from(farthest > 0.03);
             lifted += usize::from(highest > 0.01);
         }
         let pct = |n: usize| format!("{n} ({:.1}%)", 100.0 * n as f64 / episodes as f64);
         println!(
-            "| {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {fastest:.1} m/s |",
             behaviour.name(),
             pct(moved),
             pct(moved_far),
-            pct(lifted)
+            pct(lifted),
+            pct(fast),
+            pct(out)
         );
     }
 }

@@ -153,6 +153,9 @@ pub struct PickAndPlacePhysics {
     pub max_squeeze: f32,
     /// Solver iterations per physics step.
     pub solver_iterations: usize,
+    /// The fastest the solver pushes overlapping bodies apart, m/s (rapier's
+    /// `normalized_max_corrective_velocity` at a length unit of 1 m; its default is 3).
+    pub max_corrective_velocity: f32,
 }
 
 impl Default for PickAndPlacePhysics {
@@ -162,6 +165,7 @@ impl Default for PickAndPlacePhysics {
             contact_frequency: 300.0,
             max_squeeze: MAX_SQUEEZE,
             solver_iterations: 4,
+            max_corrective_velocity: 3.0,
         }
     }
 }
@@ -204,6 +208,7 @@ impl World {
         // ratio stays.
         p.contact_softness.natural_frequency = physics.contact_frequency;
         p.static_contact_softness.natural_frequency = physics.contact_frequency;
+        p.normalized_max_corrective_velocity = physics.max_corrective_velocity;
 
         let table = w.bodies.insert(RigidBodyBuilder::fixed());
         w.colliders.insert_with_parent(

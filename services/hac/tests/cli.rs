@@ -115,6 +115,8 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     assert_eq!(result["episodes"], 4);
     let rate = result["success_rate"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&rate));
+    let moved = result["moved_rate"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&moved), "{result}");
 
     // What each level did, summed over the episodes: every level's attempts call the level
     // below once each, and the top level is called once per episode.
@@ -158,12 +160,13 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let stdout = text(&o.stdout);
     let lines: Vec<&str> = stdout.lines().collect();
-    assert_eq!(lines.len(), 6, "{lines:?}");
+    assert_eq!(lines.len(), 7, "{lines:?}");
     assert!(
-        lines[4]
-            .trim_start()
-            .starts_with("level 1: 3 calls, goal reached in")
-            && lines[5].trim_start().starts_with("level 0: "),
+        lines[4].contains("achieved end goal moved")
+            && lines[5]
+                .trim_start()
+                .starts_with("level 1: 3 calls, goal reached in")
+            && lines[6].trim_start().starts_with("level 0: "),
         "{lines:?}"
     );
     for (i, line) in lines[..3].iter().enumerate() {
@@ -179,6 +182,17 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
         let state: Vec<f64> = serde_json::from_value(e["final_state"].clone()).unwrap();
         let reached = (state[0] - goal[0]).abs() <= 0.01 && (state[1] - goal[1]).abs() <= 0.02;
         assert_eq!(e["success"], reached, "{line}");
+        // The achieved end goal at the first and last state (mountain car: the state itself),
+        // and whether it moved beyond the end goal's thresholds.
+        let start: Vec<f64> = serde_json::from_value(e["start_achieved"].clone()).unwrap();
+        let last: Vec<f64> = serde_json::from_value(e["final_achieved"].clone()).unwrap();
+        assert_eq!(last, state, "{line}");
+        assert!(
+            (-0.6..=-0.4).contains(&start[0]) && start[1] == 0.0,
+            "{line}"
+        );
+        let moved = (last[0] - start[0]).abs() > 0.01 || (last[1] - start[1]).abs() > 0.02;
+        assert_eq!(e["moved"], moved, "{line}");
         // Level 0's attempts are the episode's primitive actions; the top level reached its
         // goal exactly when the episode succeeded.
         let levels = &e["levels"];
