@@ -5,6 +5,7 @@ use std::ops::Range;
 use std::sync::mpsc::{self, Receiver, RecvError, SyncSender, TryRecvError};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
@@ -542,11 +543,11 @@ struct Job {
 /// are tens of microseconds apart (the chunk sums and an Adam step), and waking a parked thread
 /// costs about as much again, on both parts of every update; a spinning thread picks the next
 /// message up at once. Bounded, so that an idle learner's workers sleep.
-const SPIN_BEFORE_PARKING: std::time::Duration = std::time::Duration::from_micros(50);
+const SPIN_BEFORE_PARKING: Duration = Duration::from_micros(50);
 
 /// `rx.recv()`, spinning up to [`SPIN_BEFORE_PARKING`] before parking.
 fn recv_spinning<T>(rx: &Receiver<T>) -> Result<T, RecvError> {
-    let start = std::time::Instant::now();
+    let start = Instant::now();
     loop {
         match rx.try_recv() {
             Ok(message) => return Ok(message),
@@ -637,6 +638,33 @@ pub struct LevelLearner {
     actor_grads: MlpGrads,
     critic_grads: MlpGrads,
     pool: Option<Pool>,
+    /// Where the updates' time went, since the learner was built or the timing reset.
+    timing: UpdateTiming,
+}
+
+/// Where a learner's update time went ([`LevelLearner::timing`]), summed over `updates`
+/// updates: the share no second thread can take (everything outside the chunk parts) bounds
+/// what more threads can give, and `waiting` shows how evenly the threads finish.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct UpdateTiming {
+    /// Updates timed.
+    pub updates: u64,
+    /// Their whole time.
+    pub total: Duration,
+    /// Of `total`, the two chunk parts (critic, then actor): from handing the chunks out to the
+    /// last one done. The rest is serial: copying the minibatch in, summing the chunks'
+    /// gradients, the Adam steps and the target networks' Polyak step.
+    pub parallel: Duration,
+    /// Of `parallel`, the calling thread idle after its own chunks, waiting for the workers'
+    /// (zero on one thread).
+    pub waiting: Duration,
+}
+
+impl UpdateTiming {
+    /// The serial time: `total - parallel`.
+    pub fn serial(&self) -> Duration {
+        self.total.saturating_sub(self.parallel)
+    }
 }
 
 impl Clone for LevelLearner {
@@ -692,7 +720,20 @@ impl LevelLearner {
                 batch: BatchCopy::default(),
             }),
             pool: None,
+            timing: UpdateTiming::default(),
         }
+    }
+
+    /// Where this learner's updates spent their time since it was built (a clone starts
+    /// from zero) or [`reset_timing`](Self::reset_timing) was last called. The timers cost a
+    /// few clock reads per update.
+    pub fn timing(&self) -> UpdateTiming {
+        self.timing
+    }
+
+    /// Starts [`timing`](Self::timing) again from zero.
+    pub fn reset_timing(&mut self) {
+        self.timing = UpdateTiming::default();
     }
 
     /// Shares each update among `threads` threads: the caller's and `threads - 1` workers that
@@ -756,6 +797,7 @@ impl LevelLearner {
             self.config().dims,
             "learner: batch dimensions differ from the level's"
         );
+        let start = Instant::now();
         let fields = Fields::new(batch);
         let n = fields.len;
         exclusive(&mut self.model).batch.set(&fields);
@@ -800,6 +842,8 @@ impl LevelLearner {
             t.actor.mlp_mut().polyak_toward(model.actor.mlp(), t.tau);
             t.critic.mlp_mut().polyak_toward(model.critic.mlp(), t.tau);
         }
+        self.timing.updates += 1;
+        self.timing.total += start.elapsed();
         UpdateStats {
             critic_loss: sq_err_sum * inv_n,
             actor_loss: -policy_q_sum * inv_n,
@@ -811,6 +855,7 @@ impl LevelLearner {
     /// Runs `part` of an update on its `chunks` chunks: the first share on this thread, the
     /// others on the workers, each share a run of consecutive chunks.
     fn run(&mut self, part: Part, chunks: usize) {
+        let start = Instant::now();
         let workers = self.pool.as_ref().map_or(&[][..], |p| &p.workers[..]);
         let threads = (workers.len() + 1).min(chunks);
         let share = |t: usize| t * chunks / threads..(t + 1) * chunks / threads;
@@ -831,9 +876,14 @@ impl LevelLearner {
             self.model
                 .run_chunk(part, &mut lock(&self.chunks[k]), k, chunks);
         }
-        for worker in helpers {
-            recv_spinning(&worker.done).expect("learner: a worker thread panicked");
+        if !helpers.is_empty() {
+            let own_done = Instant::now();
+            for worker in helpers {
+                recv_spinning(&worker.done).expect("learner: a worker thread panicked");
+            }
+            self.timing.waiting += own_done.elapsed();
         }
+        self.timing.parallel += start.elapsed();
     }
 
     /// [`update`](Self::update), undone if it diverged: when a statistic is not finite or a
@@ -1490,6 +1540,41 @@ mod tests {
         assert_eq!(learner.threads(), GRADIENT_CHUNKS);
     }
 
+    #[test]
+    fn timing_splits_each_update_into_its_serial_and_parallel_parts() {
+        let mut rng = Rng::seed_from(45);
+        let mut learner = LevelLearner::new(config(Some(0.05)), &mut rng);
+        let batch = random_batch(&mut rng, 1024);
+        for _ in 0..3 {
+            learner.update(&batch);
+        }
+        let one = learner.timing();
+        assert_eq!(one.updates, 3);
+        assert!(
+            one.parallel > Duration::ZERO && one.parallel <= one.total,
+            "{one:?}"
+        );
+        assert_eq!(one.serial(), one.total - one.parallel);
+        // On one thread nobody is waited for.
+        assert_eq!(one.waiting, Duration::ZERO, "{one:?}");
+
+        // A clone starts from zero; a reset goes back to zero.
+        let mut copy = learner.clone();
+        assert_eq!(copy.timing(), UpdateTiming::default());
+        copy.set_threads(2);
+        copy.update(&batch);
+        let two = copy.timing();
+        assert_eq!(two.updates, 1);
+        assert!(
+            two.waiting <= two.parallel && two.parallel <= two.total,
+            "{two:?}"
+        );
+        copy.reset_timing();
+        assert_eq!(copy.timing(), UpdateTiming::default());
+        // The timers change no number.
+        learner.update(&batch);
+        assert_eq!(learner.to_safetensors(), copy.to_safetensors());
+    }
     #[test]
     fn update_flops_count_the_products_of_the_reference_network() {
         // Pendulum's level 0 at the reference size: actor 5-64-64-64-1, critic 6-64-64-64-1.

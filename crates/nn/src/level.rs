@@ -43,7 +43,7 @@ impl Td3Config {
 #[derive(Debug, Clone)]
 pub enum LevelModel {
     /// HAC's level learner.
-    Hac(LevelLearner),
+    Hac(Box<LevelLearner>),
     /// One of HIRO's two levels.
     Td3(Box<Td3Learner>),
 }
@@ -58,10 +58,10 @@ impl LevelModel {
         rng: &mut Rng,
     ) -> Self {
         match hiro {
-            None => Self::Hac(LevelLearner::new(
+            None => Self::Hac(Box::new(LevelLearner::new(
                 LearnerConfig::for_level(agent, spec, level),
                 rng,
-            )),
+            ))),
             Some(hiro) => Self::Td3(Box::new(Td3Learner::new(
                 Td3Config::for_hiro_level(agent, hiro, spec, level),
                 rng,
@@ -79,10 +79,10 @@ impl LevelModel {
         bytes: &[u8],
     ) -> Result<Self, NnError> {
         Ok(match hiro {
-            None => Self::Hac(LevelLearner::from_safetensors(
+            None => Self::Hac(Box::new(LevelLearner::from_safetensors(
                 LearnerConfig::for_level(agent, spec, level),
                 bytes,
-            )?),
+            )?)),
             Some(hiro) => Self::Td3(Box::new(Td3Learner::from_safetensors(
                 Td3Config::for_hiro_level(agent, hiro, spec, level),
                 bytes,

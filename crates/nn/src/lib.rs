@@ -49,7 +49,7 @@ pub use hiro::BatchedCorrection;
 pub use kernels::{hidden_layer_sgemm_gflops, simd_extension};
 pub use learner::{
     Diverged, GRADIENT_CHUNKS, LearnerBackup, LearnerConfig, LevelLearner, MIN_CHUNK_SAMPLES,
-    PARAMETER_LIMIT, UpdateStats,
+    PARAMETER_LIMIT, UpdateStats, UpdateTiming,
 };
 pub use level::LevelModel;
 pub use mlp::{Mlp, MlpGrads, MlpWorkspace};

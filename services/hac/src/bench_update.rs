@@ -50,6 +50,13 @@ pub struct ThreadsRow {
     /// summed GFLOP/s over one copy's alone (measured just before). The update's `speedup`
     /// cannot beat it by more than the machine's drift.
     pub sgemm_scaling: f64,
+    /// Microseconds per update outside the chunk parts, which no second thread shares (the
+    /// minibatch copied in, the chunk gradients summed, the Adam steps, the target networks'
+    /// Polyak step): with `ms_per_update` at one thread, Amdahl's bound on more threads.
+    pub serial_us: f64,
+    /// Microseconds per update the calling thread waits for the workers after its own chunks
+    /// (0 on one thread): threads that finish unevenly, or cores that slow each other down.
+    pub waiting_us: f64,
 }
 
 /// `hac bench update` result.
@@ -166,6 +173,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
         while warm_up.elapsed().as_secs_f64() < 0.2 {
             learner.update(&batch);
         }
+        learner.reset_timing();
         let start = Instant::now();
         let mut updates = 0u64;
         while updates == 0 || start.elapsed().as_secs_f64() < bench.seconds {
@@ -173,6 +181,8 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             updates += 1;
         }
         let seconds = start.elapsed().as_secs_f64();
+        let timing = learner.timing();
+        let per_update_us = |d: std::time::Duration| d.as_secs_f64() * 1e6 / updates as f64;
         let per_second = updates as f64 / seconds;
         let gflops = flops as f64 * per_second / 1e9;
         let speedup = rows
@@ -195,6 +205,8 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             of_sgemm_peak: gflops / sgemm_peak_gflops,
             speedup,
             sgemm_scaling,
+            serial_us: per_update_us(timing.serial()),
+            waiting_us: per_update_us(timing.waiting),
         });
     }
     Ok(UpdateReport {
@@ -242,25 +254,29 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.cores
     );
     println!(
-        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once |"
+        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for row in &r.rows {
         println!(
-            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x |",
+            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} |",
             row.threads,
             row.ms_per_update,
             1e3 / row.ms_per_update,
             row.gflops,
             row.of_sgemm_peak,
             row.speedup,
-            row.sgemm_scaling
+            row.sgemm_scaling,
+            row.serial_us,
+            row.waiting_us
         );
     }
     println!(
         "(sgemm copies at once: that many independent single-core sgemm runs at the same time, \
          their summed rate over one alone: what the cores give together, the ceiling of the \
-         speedup)"
+         speedup; serial: per update, the part no second thread shares (minibatch copy, gradient \
+         sums, Adam and Polyak steps); waiting: per update, the calling thread idle after its own \
+         chunks until the workers finish theirs)"
     );
     Ok(())
 }
