@@ -546,11 +546,12 @@ const SPIN_BEFORE_YIELDING: Duration = Duration::from_micros(50);
 
 /// How long it waits in all before it parks (sleeps in the kernel until woken): between
 /// spinning and parking it yields its core to any other runnable thread between polls, so a
-/// waiting worker costs its core nothing another thread needs. Waking a parked thread costs
-/// 100 to 300 microseconds on a virtual machine, on top of the serial part between two updates
-/// (about 100), so a worker that parked after [`SPIN_BEFORE_YIELDING`] was woken at least once
-/// per update; measured with `hac bench update` on a 2-vCPU host, waiting up to 1 ms before
-/// parking made 2-thread updates 15-20% shorter. Bounded, so that an idle learner's workers sleep.
+/// waiting worker costs its core nothing another thread needs. The serial part between two
+/// updates' chunk parts takes about 100 microseconds, so a worker that parked after
+/// [`SPIN_BEFORE_YIELDING`] was asleep at the start of every update and paid a wake-up, which
+/// is slow on a virtual machine; measured with `hac bench update` on a 2-vCPU host, waiting up
+/// to 1 ms before parking made 2-thread updates 14-25% shorter (docs/RESULTS.md). Bounded, so
+/// that an idle learner's workers sleep.
 const WAIT_BEFORE_PARKING: Duration = Duration::from_millis(1);
 
 /// `rx.recv()`, spinning up to [`SPIN_BEFORE_YIELDING`], then yielding between polls up to
