@@ -550,7 +550,7 @@ const SPIN_BEFORE_YIELDING: Duration = Duration::from_micros(50);
 /// updates' chunk parts takes about 100 microseconds, so a worker that parked after
 /// [`SPIN_BEFORE_YIELDING`] was asleep at the start of every update and paid a wake-up, which
 /// is slow on a virtual machine; measured with `hac bench update` on a 2-vCPU host, waiting up
-/// to 1 ms before parking made 2-thread updates 14-25% shorter (docs/RESULTS.md). Bounded, so
+/// to 1 ms before parking made 2-thread updates 13-25% shorter (docs/RESULTS.md). Bounded, so
 /// that an idle learner's workers sleep.
 const WAIT_BEFORE_PARKING: Duration = Duration::from_millis(1);
 
