@@ -1591,6 +1591,7 @@ mod tests {
         learner.update(&batch);
         assert_eq!(learner.to_safetensors(), copy.to_safetensors());
     }
+
     #[test]
     fn update_flops_count_the_products_of_the_reference_network() {
         // Pendulum's level 0 at the reference size: actor 5-64-64-64-1, critic 6-64-64-64-1.
