@@ -539,39 +539,29 @@ struct Job {
 }
 
 /// How long a thread of a multi-threaded update waits for its counterpart by spinning before it
-/// starts yielding its core. The critic part's end and the actor part's start are tens of
-/// microseconds apart (the chunk sums and an Adam step); a spinning thread picks the next
-/// message up at once.
-const SPIN_BEFORE_YIELDING: Duration = Duration::from_micros(50);
+/// parks (sleeps in the kernel until woken). The serial part between two updates' chunk parts
+/// takes about 50-100 microseconds, so a worker that parked sooner (after 50 us, as it once
+/// did) was asleep at the start of every update and paid a wake-up, which is slow on a virtual
+/// machine. Measured with `hac bench update` on 2-vCPU hosts (docs/RESULTS.md, "Where the
+/// second thread's time goes" and the section after it), median 2-thread update over
+/// alternated rounds: on an Intel Xeon, 1.34 ms spinning up to 1 ms against 1.65 ms parking
+/// after 50 us; on an AMD EPYC, 1.07 ms against 1.06 ms. Yielding the core between polls
+/// instead of spinning (tried) was level with spinning on the Intel host (1.33 ms) and slower
+/// on the AMD one (1.13 ms against 1.08 over 16 rounds, with a slow tail). Bounded, so that an
+/// idle learner's workers sleep.
+const SPIN_BEFORE_PARKING: Duration = Duration::from_millis(1);
 
-/// How long it waits in all before it parks (sleeps in the kernel until woken): between
-/// spinning and parking it yields its core to any other runnable thread between polls, so a
-/// waiting worker costs its core nothing another thread needs. The serial part between two
-/// updates' chunk parts takes about 100 microseconds, so a worker that parked after
-/// [`SPIN_BEFORE_YIELDING`] was asleep at the start of every update and paid a wake-up, which
-/// is slow on a virtual machine; measured with `hac bench update` on a 2-vCPU host, waiting up
-/// to 1 ms before parking made 2-thread updates 13-25% shorter (docs/RESULTS.md). Bounded, so
-/// that an idle learner's workers sleep.
-const WAIT_BEFORE_PARKING: Duration = Duration::from_millis(1);
-
-/// `rx.recv()`, spinning up to [`SPIN_BEFORE_YIELDING`], then yielding between polls up to
-/// [`WAIT_BEFORE_PARKING`], before parking.
+/// `rx.recv()`, spinning up to [`SPIN_BEFORE_PARKING`] before parking.
 fn recv_spinning<T>(rx: &Receiver<T>) -> Result<T, RecvError> {
     let start = Instant::now();
     loop {
         match rx.try_recv() {
             Ok(message) => return Ok(message),
             Err(TryRecvError::Disconnected) => return Err(RecvError),
-            Err(TryRecvError::Empty) => {
-                let waited = start.elapsed();
-                if waited >= WAIT_BEFORE_PARKING {
-                    return rx.recv();
-                } else if waited >= SPIN_BEFORE_YIELDING {
-                    std::thread::yield_now();
-                } else {
-                    std::hint::spin_loop();
-                }
+            Err(TryRecvError::Empty) if start.elapsed() >= SPIN_BEFORE_PARKING => {
+                return rx.recv();
             }
+            Err(TryRecvError::Empty) => std::hint::spin_loop(),
         }
     }
 }
