@@ -22,7 +22,7 @@ impl Episodes {
     pub fn new(spec: &EnvSpec, config: &AgentConfig, hiro: Option<&HiroConfig>) -> Self {
         match hiro {
             None => Self::Hac(Hierarchy::new(spec, config)),
-            Some(h) => Self::Hiro(HiroRollout::new(spec, h.c)),
+            Some(h) => Self::Hiro(HiroRollout::new(spec, h.c).with_task_reward(h.task_reward)),
         }
     }
 

@@ -24,7 +24,7 @@
 //! an honest actor whose physics differs in the last bits is never refused. A box the
 //! environment leaves empty (unknown) is not checked.
 
-use crate::hiro::{LowLevelSteps, StepsError, StepsShape, goal_radius};
+use crate::hiro::{LowLevelSteps, StepsError, StepsShape, TaskReward, goal_radius};
 use crate::{BatchRef, Bounds, EnvSpec};
 
 /// How far outside a box a value may lie, as a fraction of the box's width on each side.
@@ -132,6 +132,18 @@ fn subgoal_space(spec: &EnvSpec) -> Bounds {
 
 /// `b` widened by [`MARGIN`] (and the rounding hair) on each side; an empty (unknown) box stays
 /// empty.
+/// The length of `b`'s diagonal: the farthest two of its points are apart; unbounded when `b`
+/// is empty (unknown).
+fn diagonal(b: &Bounds) -> f32 {
+    if b.is_empty() {
+        return f32::INFINITY;
+    }
+    (0..b.dim())
+        .map(|d| (b.high[d] - b.low[d]).powi(2))
+        .sum::<f32>()
+        .sqrt()
+}
+
 fn widen(b: Bounds) -> Bounds {
     if b.is_empty() {
         b
@@ -175,13 +187,14 @@ impl TransitionLimits {
     /// The limits of HIRO's `level` (0 or 1) with the high level deciding every `c` steps:
     ///
     /// - level 1: goals in the end goal space, actions (relative goals) in `[-r, r]` with `r`
-    ///   the subgoal bounds' half ranges, rewards whole numbers from `-c` to 0, and each
+    ///   the subgoal bounds' half ranges, rewards whole numbers from `-c` to 0 (with
+    ///   [`TaskReward::Distance`]: from `-c` times the end-goal box's diagonal to 0), and each
     ///   transition's packed low-level steps ([`StepsShape`]) with states in the state box,
     ///   projections in the subgoal space and actions in the action box;
     /// - level 0: goals (relative goals moved by the goal transition, which can drift by the
     ///   subgoal space's width within a decision) in `[-(r + w), r + w]`, `w` the width,
     ///   rewards from minus the largest distance such goals allow (`||r + 2w||`) to 0.
-    pub fn for_hiro_level(spec: &EnvSpec, level: usize, c: usize) -> Self {
+    pub fn for_hiro_level(spec: &EnvSpec, level: usize, c: usize, reward: TaskReward) -> Self {
         let subgoals = subgoal_space(spec);
         let radius = goal_radius(spec);
         let width: Vec<f32> = (0..spec.subgoal_dim())
@@ -210,7 +223,12 @@ impl TransitionLimits {
                 state: state.clone(),
                 goal: widen(spec.end_goal_bounds.clone()),
                 action: widen(Bounds::symmetric(&radius)),
-                rewards: Rewards::Whole { max: c as f32 },
+                rewards: match reward {
+                    TaskReward::Sparse => Rewards::Whole { max: c as f32 },
+                    TaskReward::Distance => Rewards::Within {
+                        max: c as f32 * diagonal(&spec.end_goal_bounds) * (1.0 + MARGIN) + ROUNDING,
+                    },
+                },
                 extra: Extra::Steps {
                     shape: StepsShape::of(spec, c),
                     state,
@@ -414,7 +432,7 @@ mod tests {
         );
 
         // HIRO's low level: distances, not HAC's three values; goals may drift past the box.
-        let low = TransitionLimits::for_hiro_level(&spec(), 0, 3);
+        let low = TransitionLimits::for_hiro_level(&spec(), 0, 3, TaskReward::Sparse);
         let mut b = Owned::level0();
         b.rewards = vec![-0.37, -2.5];
         b.goals = vec![3.0, 1.5, -2.0, 0.5];
@@ -426,7 +444,7 @@ mod tests {
         ));
 
         // HIRO's high level: sums of -1 over up to c steps, and its steps packed beside.
-        let high = TransitionLimits::for_hiro_level(&spec(), 1, 3);
+        let high = TransitionLimits::for_hiro_level(&spec(), 1, 3, TaskReward::Sparse);
         let shape = StepsShape {
             c: 3,
             state: 2,
@@ -477,6 +495,22 @@ mod tests {
             high.check(&h.batch()),
             Err(LimitError::ExtraWidth { .. })
         ));
+
+        // With the dense task reward: any sum of c distances within the end-goal box (diagonal
+        // 10 here), not only whole numbers; nothing positive, nothing farther.
+        let dense = TransitionLimits::for_hiro_level(&spec(), 1, 3, TaskReward::Distance);
+        h.extra.clone_from(&packed);
+        h.rewards[0] = -29.5;
+        assert_eq!(dense.check(&h.batch()), Ok(()));
+        h.rewards[0] = -0.25;
+        assert_eq!(dense.check(&h.batch()), Ok(()));
+        for bad in [0.5, -34.0] {
+            h.rewards[0] = bad;
+            assert!(matches!(
+                dense.check(&h.batch()),
+                Err(LimitError::RewardOutside { index: 0, .. })
+            ));
+        }
     }
 
     #[test]

@@ -6,7 +6,7 @@ mod common;
 use std::collections::VecDeque;
 
 use common::{PointEnv, ScriptedExploration, ScriptedPolicy};
-use hac_core::hiro::{HighTransition, HiroRollout, HiroSink};
+use hac_core::hiro::{HighTransition, HiroRollout, HiroSink, TaskReward};
 use hac_core::{Mode, OwnedTransition, Rng, Transition, TransitionSink};
 
 /// What the sink received: low-level transitions, and the high level's as plain vectors.
@@ -59,10 +59,29 @@ fn run(
     high_output: f32,
     mode: Mode,
 ) -> (Kept, bool, usize) {
+    run_rewarded(
+        c,
+        max_actions,
+        end_goal,
+        high_output,
+        mode,
+        TaskReward::Sparse,
+    )
+}
+
+/// [`run`] with the high level rewarded by `reward`.
+fn run_rewarded(
+    c: usize,
+    max_actions: usize,
+    end_goal: f32,
+    high_output: f32,
+    mode: Mode,
+    reward: TaskReward,
+) -> (Kept, bool, usize) {
     let mut env = PointEnv::new(1, 2.0, 10.0, 0.1, max_actions);
     env.start = Some(vec![0.0]);
     env.end_goal = Some(vec![end_goal]);
-    let mut rollout = HiroRollout::new(&env.spec, c);
+    let mut rollout = HiroRollout::new(&env.spec, c).with_task_reward(reward);
     let mut policy = ScriptedPolicy {
         outputs: vec![
             VecDeque::from([vec![1.0]]),
@@ -154,6 +173,20 @@ fn reaching_the_end_goal_ends_the_episode_with_a_terminal_high_transition() {
     assert_eq!(last.states, vec![3.0, 4.0]);
     // The low level's transitions are not terminal: the point does not end the episode itself.
     assert!(kept.low.iter().all(|t| !t.terminal));
+}
+
+#[test]
+fn the_distance_reward_sums_each_steps_distance_to_the_end_goal() {
+    let (kept, success, steps) = run_rewarded(3, 100, 5.0, 2.0, Mode::Train, TaskReward::Distance);
+    // The same episode as with the sparse reward: success and its end are the goal test's.
+    assert!(success);
+    assert_eq!(steps, 5);
+    let rewards: Vec<(f32, bool)> = kept.high.iter().map(|h| (h.reward, h.terminal)).collect();
+    // After the steps to 1, 2, 3: 4 + 3 + 2 left; after those to 4 and 5: 1 + 0.
+    assert_eq!(rewards, vec![(-9.0, false), (-1.0, true)]);
+    // The low level's intrinsic rewards do not depend on the high level's.
+    let (sparse, _, _) = run(3, 100, 5.0, 2.0, Mode::Train);
+    assert_eq!(kept.low, sparse.low);
 }
 
 #[test]

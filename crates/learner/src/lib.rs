@@ -224,7 +224,9 @@ impl Learner {
                 None => {
                     TransitionLimits::for_level(&spec, level, config.levels, config.horizon as f32)
                 }
-                Some(hiro) => TransitionLimits::for_hiro_level(&spec, level, hiro.c),
+                Some(hiro) => {
+                    TransitionLimits::for_hiro_level(&spec, level, hiro.c, hiro.task_reward)
+                }
             })
             .collect();
         // A HIRO run's high level keeps its low-level steps beside its transitions.

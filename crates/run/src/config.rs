@@ -239,10 +239,20 @@ fn variables(prefix: &str) -> Vec<(String, String)> {
 }
 
 /// Parses one override's value as TOML (`10`, `0.5`, `[64, 64]`, `"text"`).
+/// A `--set` or variable value as TOML; a bare word (`distance`) is taken as a string, so that
+/// choices need no quotes on the command line.
 fn parse_value(key: &str, value: &str) -> Result<toml::Value> {
-    let table: toml::Table = toml::from_str(&format!("v = {value}"))
-        .with_context(|| format!("invalid value for `{key}`: `{value}` is not a TOML value"))?;
-    Ok(table["v"].clone())
+    let bare_word = !value.is_empty()
+        && value
+            .chars()
+            .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-')
+        && value.starts_with(|ch: char| ch.is_ascii_alphabetic());
+    match toml::from_str::<toml::Table>(&format!("v = {value}")) {
+        Ok(table) => Ok(table["v"].clone()),
+        Err(_) if bare_word => Ok(toml::Value::String(value.to_string())),
+        Err(e) => Err(e)
+            .with_context(|| format!("invalid value for `{key}`: `{value}` is not a TOML value")),
+    }
 }
 
 /// Reads a run directory's `config.toml`.
@@ -253,6 +263,7 @@ pub fn load_run(dir: &Path) -> Result<RunConfig> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use hac_core::hiro::TaskReward;
 
     fn write(text: &str) -> tempfile_like::TempFile {
         tempfile_like::TempFile::new(text)
@@ -339,6 +350,10 @@ mod tests {
             "{text}"
         );
         assert_eq!(RunConfig::from_toml(&text, "test").unwrap(), c);
+        assert_eq!(h.task_reward, TaskReward::Sparse);
+        // The dense task reward is a choice named without quotes; other words are refused.
+        let dense = hiro(2, "pendulum", vec!["hiro.task_reward=distance".into()]).unwrap();
+        assert_eq!(dense.hiro.unwrap().task_reward, TaskReward::Distance);
 
         for (levels, env, set, named) in [
             (3, "pendulum", vec![], "HIRO has exactly 2 levels"),
@@ -346,6 +361,12 @@ mod tests {
             (2, "four-rooms", vec![], "grid world"),
             (2, "pendulum", vec!["hiro.c=0".into()], "hiro.c"),
             (2, "pendulum", vec!["hiro.cc=3".into()], "cc"),
+            (
+                2,
+                "pendulum",
+                vec!["hiro.task_reward=dense".into()],
+                "`dense`",
+            ),
         ] {
             let e = format!("{:#}", hiro(levels, env, set).unwrap_err());
             assert!(e.contains(named), "{e}");

@@ -76,6 +76,26 @@ pub struct HiroConfig {
     /// once per `c` steps (1.0). The learner grants them per episode, as for HAC: level 0
     /// `updates_per_step x max_actions` updates per training episode, level 1 that over `c`.
     pub updates_per_step: f32,
+    /// The task reward the high level sums over its steps: the sparse one of the HAC paper's
+    /// comparison (the default), or minus the distance to the end goal, the dense reward the
+    /// HIRO paper's own tasks used (a diagnostic: it changes what the high level learns from,
+    /// not the task's success test).
+    #[serde(default)]
+    pub task_reward: TaskReward,
+}
+
+/// What HIRO's high level is rewarded with at each primitive step ([`HiroConfig::task_reward`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TaskReward {
+    /// -1 per step, 0 at the step that reaches the end goal (which ends the episode): the task's
+    /// own sparse reward, as the HAC paper's comparison gives both algorithms.
+    #[default]
+    Sparse,
+    /// `-||G - p_end(s')||`, the distance from the step's end-goal projection to the end goal
+    /// (angles along the circle where the goal test takes them so): the dense reward of the
+    /// HIRO paper's tasks. The episode still ends, and succeeds, only within the thresholds.
+    Distance,
 }
 
 impl Default for HiroConfig {
@@ -89,6 +109,7 @@ impl Default for HiroConfig {
             noise_clip: 0.5,
             policy_delay: 2,
             updates_per_step: 1.0,
+            task_reward: TaskReward::Sparse,
         }
     }
 }

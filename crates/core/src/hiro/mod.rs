@@ -23,7 +23,7 @@ use crate::{EnvSpec, Rng};
 mod config;
 mod rollout;
 
-pub use config::{Algo, HiroConfig};
+pub use config::{Algo, HiroConfig, TaskReward};
 pub use rollout::{HighTransition, HiroRollout, HiroSink};
 
 /// `r`: the half ranges of `spec`'s subgoal bounds, per dimension. HIRO's relative goals lie in
@@ -76,6 +76,17 @@ pub fn intrinsic_reward(
         .map(|d| wrapped(achieved[d] + goal[d] - next_achieved[d], angles, d).powi(2))
         .sum();
     -squared.sqrt()
+}
+
+/// `||to - from||_2`, differences wrapped to `[-pi, pi]` on the dimensions flagged in `angles`:
+/// the dense task reward's distance ([`TaskReward::Distance`]) from an end-goal projection to
+/// the end goal.
+pub fn distance(from: &[f32], to: &[f32], angles: &[bool]) -> f32 {
+    debug_assert_eq!(from.len(), to.len());
+    (0..to.len())
+        .map(|d| wrapped(to[d] - from[d], angles, d).powi(2))
+        .sum::<f32>()
+        .sqrt()
 }
 
 fn wrapped(diff: f32, angles: &[bool], d: usize) -> f32 {

@@ -13,13 +13,16 @@
 //!   next goal `g' = h(s, g, s')` is not stored: it follows from `s`, `g` and `s'`.
 //! - per high-level decision, a [`HighTransition`]: `(s_t, g_t, R, s_{t+c}, end goal)` with `R`
 //!   the sum of the task's rewards over its steps (-1 per step, 0 at the step that reaches the
-//!   end goal, which ends the episode) and `terminal` when the end goal was reached or the
+//!   end goal, which ends the episode; or, with [`TaskReward::Distance`], minus each step's
+//!   distance to the end goal) and `terminal` when the end goal was reached or the
 //!   environment ended the episode; with its low-level states, projections and actions, which
 //!   the off-policy correction reads. The last one of an episode may have fewer than `c` steps.
 //!
 //! No hindsight at either level: that is the difference the HAC paper's comparison measures.
 
-use crate::hiro::{LowLevelSteps, StepsShape, goal_radius, goal_transition, intrinsic_reward};
+use crate::hiro::{
+    LowLevelSteps, StepsShape, TaskReward, distance, goal_radius, goal_transition, intrinsic_reward,
+};
 use crate::rollout::{EpisodeOutcome, Exploration, Policy};
 use crate::{
     Bounds, Env, EnvSpec, Mode, Rng, Transition, TransitionKind, TransitionSink, within_goal,
@@ -52,6 +55,7 @@ pub trait HiroSink {
 pub struct HiroRollout {
     spec: EnvSpec,
     c: usize,
+    task_reward: TaskReward,
     /// The relative goals' box, `[-r, r]`.
     goal_bounds: Bounds,
     /// The subgoal dimensions whose differences are taken along the circle
@@ -95,6 +99,7 @@ impl HiroRollout {
         Self {
             spec: spec.clone(),
             c,
+            task_reward: TaskReward::Sparse,
             goal_bounds: Bounds::symmetric(&radius),
             angles: spec.relative_goal_angles(),
             state: vec![0.0; spec.state_dim],
@@ -109,6 +114,12 @@ impl HiroRollout {
             segment: Segment::default(),
             packed: vec![0.0; StepsShape::of(spec, c).width()],
         }
+    }
+
+    /// The same rollout with the high level rewarded by `reward` (sparse by default).
+    pub fn with_task_reward(mut self, reward: TaskReward) -> Self {
+        self.task_reward = reward;
+        self
     }
 
     /// The shape of the high level's packed steps ([`Transition::extra`] of its transitions).
@@ -225,7 +236,11 @@ impl HiroRollout {
                 &mut self.next_goal,
             );
             let seg = &mut self.segment;
-            seg.reward += if success { 0.0 } else { -1.0 };
+            seg.reward += match self.task_reward {
+                TaskReward::Sparse if success => 0.0,
+                TaskReward::Sparse => -1.0,
+                TaskReward::Distance => -distance(&self.end_projection, &self.end_goal, angles),
+            };
             seg.states.extend_from_slice(&self.state);
             seg.actions.extend_from_slice(&self.action);
             seg.achieved.extend_from_slice(&self.next_achieved);
