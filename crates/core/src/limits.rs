@@ -130,8 +130,6 @@ fn subgoal_space(spec: &EnvSpec) -> Bounds {
     }
 }
 
-/// `b` widened by [`MARGIN`] (and the rounding hair) on each side; an empty (unknown) box stays
-/// empty.
 /// The length of `b`'s diagonal: the farthest two of its points are apart; unbounded when `b`
 /// is empty (unknown).
 fn diagonal(b: &Bounds) -> f32 {
@@ -144,6 +142,8 @@ fn diagonal(b: &Bounds) -> f32 {
         .sqrt()
 }
 
+/// `b` widened by [`MARGIN`] (and the rounding hair) on each side; an empty (unknown) box stays
+/// empty.
 fn widen(b: Bounds) -> Bounds {
     if b.is_empty() {
         b

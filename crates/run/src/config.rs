@@ -238,15 +238,13 @@ fn variables(prefix: &str) -> Vec<(String, String)> {
     vars
 }
 
-/// Parses one override's value as TOML (`10`, `0.5`, `[64, 64]`, `"text"`).
-/// A `--set` or variable value as TOML; a bare word (`distance`) is taken as a string, so that
-/// choices need no quotes on the command line.
+/// Parses one override's value as TOML (`10`, `0.5`, `[64, 64]`, `"text"`); a bare word that is
+/// not TOML (`distance`) is taken as a string, so that choices need no quotes on the command line.
 fn parse_value(key: &str, value: &str) -> Result<toml::Value> {
-    let bare_word = !value.is_empty()
+    let bare_word = value.starts_with(|ch: char| ch.is_ascii_alphabetic())
         && value
             .chars()
-            .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-')
-        && value.starts_with(|ch: char| ch.is_ascii_alphabetic());
+            .all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-');
     match toml::from_str::<toml::Table>(&format!("v = {value}")) {
         Ok(table) => Ok(table["v"].clone()),
         Err(_) if bare_word => Ok(toml::Value::String(value.to_string())),

@@ -72,10 +72,9 @@ pub fn intrinsic_reward(
 ) -> f32 {
     debug_assert_eq!(achieved.len(), goal.len());
     debug_assert_eq!(next_achieved.len(), goal.len());
-    let squared: f32 = (0..goal.len())
-        .map(|d| wrapped(achieved[d] + goal[d] - next_achieved[d], angles, d).powi(2))
-        .sum();
-    -squared.sqrt()
+    -wrapped_norm(goal.len(), angles, |d| {
+        achieved[d] + goal[d] - next_achieved[d]
+    })
 }
 
 /// `||to - from||_2`, differences wrapped to `[-pi, pi]` on the dimensions flagged in `angles`:
@@ -83,8 +82,14 @@ pub fn intrinsic_reward(
 /// the end goal.
 pub fn distance(from: &[f32], to: &[f32], angles: &[bool]) -> f32 {
     debug_assert_eq!(from.len(), to.len());
-    (0..to.len())
-        .map(|d| wrapped(to[d] - from[d], angles, d).powi(2))
+    wrapped_norm(to.len(), angles, |d| to[d] - from[d])
+}
+
+/// The Euclidean norm of the `dims` differences `diff(d)`, each wrapped to `[-pi, pi]` on the
+/// dimensions flagged in `angles`.
+fn wrapped_norm(dims: usize, angles: &[bool], diff: impl Fn(usize) -> f32) -> f32 {
+    (0..dims)
+        .map(|d| wrapped(diff(d), angles, d).powi(2))
         .sum::<f32>()
         .sqrt()
 }
