@@ -35,6 +35,7 @@ impl Td3Config {
             policy_noise: hiro.policy_noise,
             noise_clip: hiro.noise_clip,
             policy_delay: hiro.policy_delay,
+            critic_loss: hiro.critic_loss,
         }
     }
 }

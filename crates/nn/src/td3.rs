@@ -8,6 +8,7 @@
 //! every `policy_delay`-th critic update only. The next goal can differ from the goal (HIRO's
 //! low level: the goal moves with the state), so [`Td3Learner::update`] takes it apart.
 
+use hac_core::hiro::CriticLoss;
 use hac_core::{Batch, Bounds, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
@@ -43,6 +44,8 @@ pub struct Td3Config {
     pub noise_clip: f32,
     /// The actor and the targets move once per this many critic updates.
     pub policy_delay: u64,
+    /// What each critic minimises against the target.
+    pub critic_loss: CriticLoss,
 }
 
 impl Td3Config {
@@ -54,7 +57,8 @@ impl Td3Config {
 
     /// The HIRO paper's TD3 settings for a level with `dims` and `action_bounds`: gamma 0.99,
     /// actor lr 1e-4, critic lr 1e-3, tau 0.005, smoothing noise 0.2 clipped to 0.5 (of the half
-    /// range), actor every 2nd critic update; hidden layers as given.
+    /// range), actor every 2nd critic update, critics on the mean squared error; hidden layers
+    /// as given.
     pub fn reference(dims: LevelDims, action_bounds: Bounds, hidden: Vec<usize>) -> Self {
         Self {
             dims,
@@ -67,6 +71,7 @@ impl Td3Config {
             policy_noise: 0.2,
             noise_clip: 0.5,
             policy_delay: 2,
+            critic_loss: CriticLoss::Mse,
         }
     }
 }
@@ -388,8 +393,9 @@ impl Td3Learner {
         sum / n as f32
     }
 
-    /// One Adam step on each critic's mean squared error to `self.y`; returns the mean of the
-    /// two errors and the first critic's mean `Q`, both from before the steps.
+    /// One Adam step on each critic's loss against `self.y` (the mean over the batch of
+    /// [`Td3Config::critic_loss`]); returns the mean of the two critics' losses and the first
+    /// critic's mean `Q`, both from before the steps.
     fn critic_steps(&mut self, batch: &Batch) -> (f32, f32) {
         let d = self.config.dims;
         let n = batch.len;
@@ -405,21 +411,22 @@ impl Td3Learner {
             d.action,
         );
         let inv_n = 1.0 / n as f32;
+        let critic_loss = self.config.critic_loss;
         let (mut loss, mut mean_q) = (0.0, 0.0);
         for k in 0..2 {
             let critic = &mut self.critics[k];
             critic.forward(&mut self.critic_ws);
-            let (mut sq_err_sum, mut q_sum) = (0.0, 0.0);
+            let (mut loss_sum, mut q_sum) = (0.0, 0.0);
             let (q, dq) = self.critic_ws.output_and_grad_mut();
             for ((dq, &q), &y) in dq.iter_mut().zip(q).zip(&self.y) {
-                let err = q - y;
-                sq_err_sum += err * err;
+                let (value, slope) = critic_loss.value_and_slope(q - y);
+                loss_sum += value;
                 q_sum += q;
-                *dq = 2.0 * err * inv_n;
+                *dq = slope * inv_n;
             }
             critic.backward(&mut self.critic_ws, Some(&mut self.critic_grads), 0..0);
             self.critic_opts[k].step(critic.tensors_mut().zip(self.critic_grads.tensors()));
-            loss += 0.5 * sq_err_sum * inv_n;
+            loss += 0.5 * loss_sum * inv_n;
             if k == 0 {
                 mean_q = q_sum * inv_n;
             }
@@ -632,6 +639,50 @@ mod tests {
         assert_ne!(snapshot(l.actor.mlp()), actor0);
         assert_ne!(snapshot(&l.target_critics[1]), target0);
         assert_eq!(l.updates(), 2);
+    }
+
+    #[test]
+    fn a_huber_critic_weighs_every_sample_beyond_the_delta_alike() {
+        // Two batches that differ only in how far below the critics' outputs their targets
+        // lie (about 50 and about 500 below, with per-sample spread): every error exceeds the
+        // Huber delta, so each sample's slope is +1 in both and three updates leave the same
+        // networks. The squared error weighs each sample by its error, and they part.
+        let run = |loss: CriticLoss, offset: f32| {
+            let mut rng = Rng::seed_from(9);
+            let mut cfg = config();
+            cfg.critic_loss = loss;
+            let mut l = Td3Learner::new(cfg, &mut rng);
+            let mut b = batch(32, &mut rng);
+            for (j, r) in b.rewards.iter_mut().enumerate() {
+                *r = offset * (1.0 + 0.01 * j as f32);
+            }
+            let mut stats = Vec::new();
+            for _ in 0..3 {
+                stats.push(l.update(&b, None, &mut rng));
+            }
+            let weights: Vec<f32> = l.critics[0].tensors().flatten().copied().collect();
+            (weights, stats)
+        };
+        let (near, near_stats) = run(CriticLoss::Huber, -50.0);
+        let (far, far_stats) = run(CriticLoss::Huber, -500.0);
+        assert_eq!(
+            near, far,
+            "Huber: beyond the delta only the error's sign counts"
+        );
+        // Its loss is the mean of |Q - y| - 1/2, about 450 apart between the two.
+        let gap = far_stats[0].critic_loss - near_stats[0].critic_loss;
+        assert!((400.0..520.0).contains(&gap), "Huber loss gap {gap}");
+        let (near, _) = run(CriticLoss::Mse, -50.0);
+        let (far, far_stats) = run(CriticLoss::Mse, -500.0);
+        assert_ne!(
+            near, far,
+            "the squared error weighs samples by their errors"
+        );
+        assert!(
+            far_stats[0].critic_loss > 200_000.0,
+            "{}",
+            far_stats[0].critic_loss
+        );
     }
 
     #[test]

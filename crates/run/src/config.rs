@@ -261,7 +261,7 @@ pub fn load_run(dir: &Path) -> Result<RunConfig> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use hac_core::hiro::TaskReward;
+    use hac_core::hiro::{CriticLoss, TaskReward};
 
     fn write(text: &str) -> tempfile_like::TempFile {
         tempfile_like::TempFile::new(text)
@@ -352,6 +352,18 @@ mod tests {
         // The dense task reward is a choice named without quotes; other words are refused.
         let dense = hiro(2, "pendulum", vec!["hiro.task_reward=distance".into()]).unwrap();
         assert_eq!(dense.hiro.unwrap().task_reward, TaskReward::Distance);
+        // The critics' loss: the squared error unless asked, and then written down, so that a
+        // resumed run keeps it; the default is left out, so older runs keep their digest.
+        assert_eq!(h.critic_loss, CriticLoss::Mse);
+        assert!(!text.contains("critic_loss"), "{text}");
+        let huber = hiro(2, "pendulum", vec!["hiro.critic_loss=huber".into()]).unwrap();
+        let huber_text = toml::to_string(&huber).unwrap();
+        assert!(
+            huber_text.contains("critic_loss = \"huber\""),
+            "{huber_text}"
+        );
+        assert_eq!(RunConfig::from_toml(&huber_text, "test").unwrap(), huber);
+        assert_eq!(huber.hiro.unwrap().critic_loss, CriticLoss::Huber);
 
         for (levels, env, set, named) in [
             (3, "pendulum", vec![], "HIRO has exactly 2 levels"),
@@ -365,6 +377,7 @@ mod tests {
                 vec!["hiro.task_reward=dense".into()],
                 "`dense`",
             ),
+            (2, "pendulum", vec!["hiro.critic_loss=l1".into()], "`l1`"),
         ] {
             let e = format!("{:#}", hiro(levels, env, set).unwrap_err());
             assert!(e.contains(named), "{e}");

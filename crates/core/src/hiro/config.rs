@@ -82,6 +82,41 @@ pub struct HiroConfig {
     /// not the task's success test).
     #[serde(default)]
     pub task_reward: TaskReward,
+    /// What each critic minimises against its TD target: the mean squared error of the TD3
+    /// paper (the default), or the Huber loss (delta 1) that the HIRO paper's reference code
+    /// and the public PyTorch port of it use. Left out of a run's `config.toml` when it is the
+    /// default, so runs from before the key keep their configuration digest.
+    #[serde(default, skip_serializing_if = "CriticLoss::is_mse")]
+    pub critic_loss: CriticLoss,
+}
+
+/// What a TD3 critic minimises against its target ([`HiroConfig::critic_loss`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CriticLoss {
+    /// The mean of `(Q - y)^2`: the TD3 paper's.
+    #[default]
+    Mse,
+    /// The mean of the Huber loss with delta 1: `(Q - y)^2 / 2` within 1 of the target,
+    /// `|Q - y| - 1/2` beyond, so that no sample's gradient exceeds 1 (the HIRO paper's
+    /// reference code, and the PyTorch port's `smooth_l1_loss`).
+    Huber,
+}
+
+impl CriticLoss {
+    /// The loss of one sample whose prediction is `err` off its target, and the loss's
+    /// derivative in the prediction.
+    pub fn value_and_slope(self, err: f32) -> (f32, f32) {
+        match self {
+            CriticLoss::Mse => (err * err, 2.0 * err),
+            CriticLoss::Huber if err.abs() <= 1.0 => (0.5 * err * err, err),
+            CriticLoss::Huber => (err.abs() - 0.5, err.signum()),
+        }
+    }
+
+    fn is_mse(&self) -> bool {
+        *self == CriticLoss::Mse
+    }
 }
 
 /// What HIRO's high level is rewarded with at each primitive step ([`HiroConfig::task_reward`]).
@@ -110,6 +145,7 @@ impl Default for HiroConfig {
             policy_delay: 2,
             updates_per_step: 1.0,
             task_reward: TaskReward::Sparse,
+            critic_loss: CriticLoss::Mse,
         }
     }
 }
@@ -196,5 +232,24 @@ impl HiroConfig {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::CriticLoss;
+
+    #[test]
+    fn critic_losses_and_their_slopes() {
+        assert_eq!(CriticLoss::Mse.value_and_slope(3.0), (9.0, 6.0));
+        assert_eq!(CriticLoss::Mse.value_and_slope(-0.5), (0.25, -1.0));
+        // Huber, delta 1: quadratic within 1, linear beyond, continuous at the seam.
+        assert_eq!(CriticLoss::Huber.value_and_slope(0.5), (0.125, 0.5));
+        assert_eq!(CriticLoss::Huber.value_and_slope(-1.0), (0.5, -1.0));
+        assert_eq!(CriticLoss::Huber.value_and_slope(3.0), (2.5, 1.0));
+        assert_eq!(CriticLoss::Huber.value_and_slope(-300.0), (299.5, -1.0));
+        let (inside, _) = CriticLoss::Huber.value_and_slope(1.0);
+        let (outside, _) = CriticLoss::Huber.value_and_slope(1.0 + 1e-6);
+        assert!((outside - inside).abs() < 1e-5);
     }
 }

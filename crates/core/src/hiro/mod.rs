@@ -23,7 +23,7 @@ use crate::{EnvSpec, Rng};
 mod config;
 mod rollout;
 
-pub use config::{Algo, HiroConfig, TaskReward};
+pub use config::{Algo, CriticLoss, HiroConfig, TaskReward};
 pub use rollout::{HighTransition, HiroRollout, HiroSink};
 
 /// `r`: the half ranges of `spec`'s subgoal bounds, per dimension. HIRO's relative goals lie in
