@@ -173,16 +173,13 @@ def test_round():
     for _ in range(args.test_episodes):
         obs = test_env.reset()
         agent.set_final_goal(obs["desired_goal"])
-        s, done, step, info = obs["observation"], False, 0, {"ok": False}
+        s, done, step = obs["observation"], False, 0
         while not done:
-            a = agent._choose_action(s, agent.sg)
-            o, r, done, info = test_env.step(a)
-            n_s = o["observation"]
-            agent.n_sg = agent._choose_subgoal(step, s, agent.sg, n_s)
-            s = n_s
+            # the port's own greedy step (no noise, no random warm-up)
+            _, _, s, done = agent.step(s, test_env, step)
             step += 1
-            agent.sg = agent.n_sg
-        wins += info["ok"]
+            agent.end_step()
+        wins += test_env.reached()
     return 100.0 * wins / args.test_episodes
 
 
