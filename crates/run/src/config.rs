@@ -61,6 +61,9 @@ pub struct Overrides {
     /// `KEY=VALUE` agent overrides (`tabular.KEY=VALUE` for the tabular learner,
     /// `hiro.KEY=VALUE` for HIRO), VALUE in TOML syntax.
     pub set: Vec<String>,
+    /// Leave HIRO's settings (the file's `[hiro]` table, `hiro.KEY` in `set`) out of a HAC run
+    /// instead of refusing them: for a grid of both algorithms sharing one set of settings.
+    pub hiro_settings_for_hiro_only: bool,
 }
 
 pub const DEFAULT_ENV: &str = "pendulum";
@@ -186,7 +189,7 @@ pub fn resolve(file: Option<&Path>, flags: Overrides) -> Result<RunConfig> {
             .context("in the hiro configuration")?;
         Some(hiro)
     } else {
-        if file_config.hiro.is_some() || hiro_flags {
+        if (file_config.hiro.is_some() || hiro_flags) && !flags.hiro_settings_for_hiro_only {
             bail!("`hiro` settings apply to `algo = \"hiro\"` only (this run trains HAC)");
         }
         None
@@ -395,6 +398,18 @@ mod tests {
             .unwrap_err()
         );
         assert!(e.contains("algo = \"hiro\""), "{e}");
+        // ... unless they are for the HIRO runs of the same grid: then the HAC run leaves them out.
+        let hac = resolve(
+            None,
+            Overrides {
+                set: vec!["hiro.critic_loss=huber".into()],
+                hiro_settings_for_hiro_only: true,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert!(hac.hiro.is_none());
+        assert_eq!(hac, resolve(None, Overrides::default()).unwrap());
         // A HAC run's config.toml does not mention the algorithm (the same file as before).
         let hac = resolve(None, Overrides::default()).unwrap();
         assert!(!toml::to_string(&hac).unwrap().contains("algo"));

@@ -128,6 +128,8 @@ pub fn run(grid: Grid) -> Result<()> {
                             episodes: grid.episodes,
                             max_actions: grid.max_actions,
                             set: grid.set.clone(),
+                            // `--set hiro.KEY` in a grid of HAC and HIRO is for the HIRO runs.
+                            hiro_settings_for_hiro_only: grid.algos.len() > 1,
                             ..Default::default()
                         },
                     )?;

@@ -298,7 +298,8 @@ struct ExperimentArgs {
     /// TOML config file applied to every run (as for `hac train`).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Override one agent hyperparameter for every run (repeatable), as for `hac train`.
+    /// Override one agent hyperparameter for every run (repeatable), as for `hac train`. With
+    /// `--algo hac,hiro`, `hiro.KEY` settings apply to the HIRO runs only.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
     /// Replace runs already in the output directory.
@@ -598,6 +599,7 @@ fn train(args: TrainArgs) -> Result<()> {
             replay_shards: args.replay_shards,
             max_actions: args.max_actions,
             set: args.set,
+            hiro_settings_for_hiro_only: false,
         },
     )?;
     if args.print_config {

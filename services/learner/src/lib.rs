@@ -227,6 +227,7 @@ impl LearnerArgs {
                 replay_shards: self.replay_shards,
                 max_actions: self.max_actions,
                 set: self.set.clone(),
+                hiro_settings_for_hiro_only: false,
             },
         )
     }
