@@ -1012,8 +1012,8 @@ fn shared_memory(image: &Image) {
 fn eight_trainers(image: &Image) {
     // Episode turns (one episode in flight): the embedded run's schedule with any number of
     // trainers, each episode drawing from the seed's streams of its index, so the trained
-    // networks are those of one trainer alone with the same seed (crates/serve/tests/turns.rs),
-    // not a draw that depends on which container played which episode. Free-running trainers (deploy/hac.toml's `episodes_in_flight = 0`) reached 90 %
+    // networks are those of one trainer alone with the same seed
+    // (crates/serve/tests/integration/turns.rs), not a draw that depends on which container played which episode. Free-running trainers (deploy/hac.toml's `episodes_in_flight = 0`) reached 90 %
     // here too when the machine was otherwise idle, but not while a build took its 2 cores: the
     // learner fell behind and the trainers played on stale weights (docs/OPERATIONS.md).
     let stack = Stack::new("eight", &["compose.yaml"], image, Some(EIGHT_RUN));

@@ -1,7 +1,7 @@
 //! The keys of the daemons' tables, generated from their clap definitions; do not edit. The
 //! `hac` binary links both daemons and checks both tables against their definitions; a daemon's
 //! own binary checks the other daemon's table against this list. `cargo test -p hac-cli --test
-//! config` fails while the list is out of date; `HAC_BLESS=1` on that command rewrites it.
+//! integration config::` fails while the list is out of date; `HAC_BLESS=1` on that command rewrites it.
 
 /// `[learner]`.
 pub const LEARNER: &[&str] = &[

@@ -1,7 +1,7 @@
 //! HIRO's episode on a point moved by its actions (the position is the state, the subgoal
 //! projection and the end-goal projection): what the two levels store, step by step.
 
-mod common;
+use crate::common;
 
 use std::collections::VecDeque;
 

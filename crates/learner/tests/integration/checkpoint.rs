@@ -9,7 +9,7 @@ use hac_core::{Batch, Rng};
 use hac_learner::{CheckpointError, Learner, LearnerCheckpoint, LearnerOptions, StartError};
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
-mod common;
+use crate::common;
 
 use common::{drained, files};
 

@@ -2,8 +2,8 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use crate::binaries::port_of;
-use crate::{deploy, read, repo};
+use super::binaries::port_of;
+use super::{deploy, read, repo};
 
 #[derive(Debug)]
 pub struct Dockerfile {

@@ -2,7 +2,7 @@
 //! watched), health through a run's end, reflection, Prometheus metrics, the bearer token on
 //! every service but health, TLS, and the per-actor message rate limit.
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::sync::Arc;

@@ -8,7 +8,7 @@ use hac_core::Batch;
 use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, Stored};
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
-mod common;
+use crate::common;
 
 fn run(episodes: u64) -> RunConfig {
     common::small_run(episodes, 2)

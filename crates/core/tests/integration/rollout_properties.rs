@@ -1,7 +1,7 @@
 //! Properties of the rollout over random seeds, level counts 1..=4 and settings, with a random
 //! policy and HAC's own Gaussian exploration on a point environment.
 
-mod common;
+use crate::common;
 
 use common::{PointEnv, RandomPolicy, agent_config};
 use hac_core::{

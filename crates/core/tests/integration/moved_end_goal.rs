@@ -1,7 +1,7 @@
 //! `Episodes::moved_end_goal`: whether an episode's last state achieves a different end goal
 //! than its first (beyond the end goal's thresholds), for HAC's hierarchy and HIRO's rollout.
 
-mod common;
+use crate::common;
 
 use std::collections::VecDeque;
 

@@ -242,7 +242,7 @@ fn in_step(path: &Path, expected: &str) {
     assert!(
         found == expected,
         "{} is out of date with the daemons' flags; run `HAC_BLESS=1 cargo test -p hac-cli \
-         --test config` and review the diff",
+         --test integration config::` and review the diff",
         path.display()
     );
 }
@@ -260,7 +260,7 @@ fn key_lists_and_docs_are_in_step_with_the_flags() {
         "//! The keys of the daemons' tables, generated from their clap definitions; do not edit. The\n\
          //! `hac` binary links both daemons and checks both tables against their definitions; a daemon's\n\
          //! own binary checks the other daemon's table against this list. `cargo test -p hac-cli --test\n\
-         //! config` fails while the list is out of date; `HAC_BLESS=1` on that command rewrites it.\n\
+         //! integration config::` fails while the list is out of date; `HAC_BLESS=1` on that command rewrites it.\n\
          \n\
          /// `[learner]`.\n\
          pub const LEARNER: &[&str] = &[\n{}];\n\

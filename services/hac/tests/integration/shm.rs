@@ -2,9 +2,9 @@
 //! actors on both; a shared-memory actor killed with SIGKILL and started again; two runs side by
 //! side on one host.
 
+use crate::common;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-mod common;
 
 use common::{
     Processes, USING_SHM, actor, all_logs, assert_exactly_once, count, log, refused_while_running,

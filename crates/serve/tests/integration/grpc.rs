@@ -2,7 +2,7 @@
 //! exactly-once storage across resends, the weights watch, and a [`GrpcLink`] that survives a
 //! learner restart.
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::sync::Arc;

@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-mod common;
+use crate::common;
 
 use common::{Processes, USING_SHM, all_logs, count, hac, listening_addr, summary};
 

@@ -4,10 +4,10 @@ use std::collections::BTreeMap;
 
 use serde_json::Value;
 
-use crate::binaries::{
+use super::binaries::{
     Daemon, Process, check_env, flag_of_env, health_services, host_of, is_boolish, port_of,
 };
-use crate::{deploy, json_file, read, strings, yaml_documents};
+use super::{deploy, json_file, read, strings, yaml_documents};
 
 pub fn compose_validator() -> jsonschema::Validator {
     let schema = json_file(&deploy().join("schemas/compose-spec.json"));

@@ -7,7 +7,7 @@ use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerCheckpoint, LearnerOptions, RECENT_SNAPSHOTS};
 use hac_proto::{ActorRole, Evaluation, Registration};
 
-mod common;
+use crate::common;
 
 fn run() -> RunConfig {
     common::small_run(1000, 2)

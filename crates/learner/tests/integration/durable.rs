@@ -14,7 +14,7 @@ use hac_proto::{
     ActorRole, DecodedBatch, IngestItem, IngestMessage, PreviousIncarnation, Registration,
 };
 
-mod common;
+use crate::common;
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("hac-durable-{}-{name}", std::process::id()));

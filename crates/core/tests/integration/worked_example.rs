@@ -2,7 +2,7 @@
 //! g0 untested; level 0 acts 5 times with noise and misses. Level 1 then proposes g2 and tests it;
 //! level 0 acts greedily 5 times and misses, so level 1 is penalised. Every transition is checked.
 
-mod common;
+use crate::common;
 
 use std::collections::VecDeque;
 

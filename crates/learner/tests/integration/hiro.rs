@@ -8,7 +8,7 @@ use hac_core::{Batch, Env, Episodes, GaussianExploration, Mode, OwnedTransition,
 use hac_learner::{IngestError, Learner, LearnerCheckpoint, LearnerOptions};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
-mod common;
+use crate::common;
 
 use common::{drained, files};
 

@@ -4,7 +4,7 @@
 //! learner restart, messages held until durable and resent to a learner resumed from its
 //! write-ahead log, and the fallback to gRPC.
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::path::Path;

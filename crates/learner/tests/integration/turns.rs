@@ -13,7 +13,7 @@ use hac_learner::{
 };
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
-mod common;
+use crate::common;
 
 fn run() -> RunConfig {
     common::small_run(1000, 1)

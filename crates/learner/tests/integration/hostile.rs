@@ -14,7 +14,7 @@ use hac_learner::{Learner, LearnerOptions, Stored};
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 use proptest::prelude::*;
 
-mod common;
+use crate::common;
 
 /// Values an attacker or a buggy client might send, most of them plausible.
 fn value() -> impl Strategy<Value = f32> {

@@ -8,8 +8,8 @@ use std::sync::OnceLock;
 
 use serde_json::Value;
 
-use crate::binaries::{Daemon, Process, health_services, host_of, port_of, proto_services};
-use crate::{deploy, json_file, read, strings, yaml_documents};
+use super::binaries::{Daemon, Process, health_services, host_of, port_of, proto_services};
+use super::{deploy, json_file, read, strings, yaml_documents};
 
 pub fn kustomize(dir: &Path) -> Vec<Value> {
     let output = match Command::new("kubectl").arg("kustomize").arg(dir).output() {

@@ -9,7 +9,7 @@ use std::sync::OnceLock;
 
 use clap::Args as _;
 
-use crate::HAC;
+use super::HAC;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Daemon {

@@ -3,10 +3,10 @@
 //! killed with SIGKILL and started again, a learner killed with SIGKILL and started again on the
 //! same address.
 
+use crate::common;
 use std::path::{Path, PathBuf};
 use std::process::Child;
 use std::time::{Duration, Instant};
-mod common;
 
 use common::{Processes, all_logs, count, hac, listening_addr, log, summary};
 

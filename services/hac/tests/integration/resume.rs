@@ -3,10 +3,10 @@
 //! continues from the one before (weights version, counters, learning curve), gets its actors
 //! back and finishes the run; the run's policy then exports from its checkpoints.
 
+use crate::common;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
-mod common;
 
 use common::{Processes, all_logs, hac, listening_addr};
 
