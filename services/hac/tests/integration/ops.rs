@@ -27,10 +27,7 @@ use common::{Processes, all_logs};
 const DEADLINE: Duration = Duration::from_secs(180);
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hac-ops-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch("hac-ops-test", name)
 }
 
 /// `hac <args>` with extra environment, stderr to `<logs>/<name>.log`.
