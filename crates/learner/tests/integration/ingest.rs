@@ -305,9 +305,14 @@ fn weights_cover_each_episode_once_its_updates_are_done_and_the_budget_ends_the_
             assert_eq!(level.updates, 3 * e, "3 updates per episode: {level:?}");
         }
     }
-    // No evaluator: the run is over once the budget's updates are done.
-    let last = learner.weights().latest().unwrap();
-    assert!(last.run_finished, "{last:?}");
+    // No evaluator: the run is over once the budget's updates are done. The snapshot that
+    // finishes the run follows the one that covers the last episode (the trainer that publishes
+    // the one then finishes the run), so wait for it rather than read the latest at once.
+    let last = learner
+        .weights()
+        .wait_for(Duration::from_secs(30), |w| w.run_finished)
+        .expect("the budget's last updates finish the run");
+    assert_eq!(last.episodes, 3, "{last:?}");
     assert!(learner.is_finished());
     let e = learner
         .ingest(&msg("a", inc, seq + 1, episode()))
