@@ -9,6 +9,7 @@ use hac_learner::{IngestError, Learner, LearnerOptions, RejectReason, Stored};
 use hac_proto::{ActorRole, DecodedBatch, Evaluation, IngestItem, IngestMessage, Registration};
 
 use crate::common;
+use common::rejected;
 
 fn run(episodes: u64) -> RunConfig {
     common::small_run(episodes, 2)
@@ -54,16 +55,6 @@ fn msg(id: &str, incarnation: u64, sequence: u64, item: IngestItem) -> IngestMes
         sequence,
         item,
     }
-}
-
-fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
-    learner
-        .status()
-        .rejected
-        .iter()
-        .find(|(r, _)| *r == reason)
-        .map(|&(_, n)| n)
-        .unwrap()
 }
 
 fn stored(learner: &Learner) -> u64 {

@@ -14,6 +14,7 @@ use hac_learner::{
 use hac_proto::{ActorRole, DecodedBatch, IngestItem, IngestMessage, Registration};
 
 use crate::common;
+use common::rejected;
 
 fn run() -> RunConfig {
     common::small_run(1000, 1)
@@ -73,16 +74,6 @@ fn play(learner: &Learner, id: &str, incarnation: u64, sequence: u64) -> u64 {
             .unwrap();
     }
     sequence
-}
-
-fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
-    let status = learner.status();
-    status
-        .rejected
-        .iter()
-        .find(|(r, _)| *r == reason)
-        .map(|&(_, n)| n)
-        .unwrap()
 }
 
 const NOW: Duration = Duration::ZERO;

@@ -8,7 +8,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{batch_item, episode, link_options, localhost, run_config};
+use common::{batch_item, episode, link_options, localhost, rejected, run_config};
 
 use hac_agent::RunConfig;
 use hac_learner::{Learner, LearnerOptions, RejectReason};
@@ -173,15 +173,6 @@ async fn refusal<T: Send + 'static>(stream: &mut Streaming<T>) -> Status {
             Err(status) => return status,
         }
     }
-}
-
-fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
-    learner
-        .status()
-        .rejected
-        .iter()
-        .find(|(r, _)| *r == reason)
-        .map_or(0, |&(_, n)| n)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{episode, localhost, runtime};
+use common::{episode, localhost, rejected, runtime};
 
 use hac_agent::RunConfig;
 use hac_core::Batch;
@@ -167,15 +167,6 @@ fn batch_item(learner: &Learner, level: usize, len: usize, mark: f32) -> IngestI
         weights_version: 1,
         batch,
     })
-}
-
-fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
-    learner
-        .status()
-        .rejected
-        .iter()
-        .find(|(r, _)| *r == reason)
-        .map_or(0, |(_, n)| *n)
 }
 
 fn shm_options() -> ShmServerOptions {

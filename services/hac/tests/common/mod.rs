@@ -1,19 +1,50 @@
-//! What the real-process tests share: scratch directories, starting `hac` with its stderr in a
-//! log, the learner's `listening on <addr>` line, log tails for failure messages, and the run's
-//! `summary.json`. Each test file uses part of it.
+//! What the real-process tests share: scratch directories, running `hac` to completion or
+//! starting it with its stderr in a log, the learner's `listening on <addr>` line, log tails for
+//! failure messages, and the run's `summary.json`. Each test module uses part of it.
 #![allow(dead_code)]
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Child, Command, ExitStatus, Output, Stdio};
 use std::time::{Duration, Instant};
 
-/// A fresh directory `<tmp>/<prefix>-<pid>-<name>`.
-pub fn scratch(prefix: &str, name: &str) -> PathBuf {
+/// The path `<tmp>/<prefix>-<pid>-<name>`, removed if an earlier run left it: for a run
+/// directory that `hac` itself must create (`--out` must not exist yet).
+pub fn fresh_path(prefix: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("{prefix}-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+/// A fresh, empty directory `<tmp>/<prefix>-<pid>-<name>`.
+pub fn scratch(prefix: &str, name: &str) -> PathBuf {
+    let dir = fresh_path(prefix, name);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// `hac <args>` to completion.
+pub fn hac_output(args: &[&str]) -> Output {
+    hac_output_env(args, &[])
+}
+
+/// `hac <args>` to completion with extra environment; no log level or token of the caller's
+/// reaches it.
+pub fn hac_output_env(args: &[&str], env: &[(&str, &str)]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .env_remove("HAC_TOKEN")
+        .env_remove("HAC_TOKEN_FILE")
+        .envs(env.iter().copied())
+        .stdin(Stdio::null())
+        .output()
+        .expect("the hac binary runs")
+}
+
+/// Output bytes as text.
+pub fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
 }
 
 /// `hac <args>` with stderr to `<logs>/<name>.log`.
@@ -45,6 +76,27 @@ pub fn listening_addr(learner: &mut Child, logs: &Path) -> String {
             )
         })
         .to_string()
+}
+
+/// Starts `hac <args>` (a learner) and returns it with the `host:port` it listens on.
+pub fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
+    let mut child = hac(args, logs, name);
+    let addr = listening_addr(&mut child, logs);
+    (child, addr)
+}
+
+/// Waits until `path` holds at least `lines` lines, up to `deadline` (then fails with the logs).
+pub fn wait_for_lines(path: &Path, lines: usize, logs: &Path, deadline: Duration) {
+    let started = Instant::now();
+    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < lines {
+        assert!(
+            started.elapsed() < deadline,
+            "{} never reached {lines} lines\n{}",
+            path.display(),
+            all_logs(logs)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
 
 /// The last 30 lines of every `*.log` in `logs`.
@@ -138,8 +190,7 @@ pub fn log(logs: &Path, name: &str) -> String {
 pub fn shm_learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
     let mut all = vec!["learner", "--shm", "--listen", "127.0.0.1:0"];
     all.extend_from_slice(args);
-    let mut child = hac(&all, logs, name);
-    let addr = listening_addr(&mut child, logs);
+    let (child, addr) = learner(&all, logs, name);
     (child, format!("http://{addr}"))
 }
 

@@ -6,30 +6,17 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use crate::common;
-
-fn hac(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("the hac binary runs")
-}
+use common::{hac_output, text};
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hac-cli-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
+    common::fresh_path("hac-cli-test", name)
 }
 
 #[test]
 fn train_writes_a_run_directory_and_eval_reads_it() {
     let out = scratch("train");
     let out_s = out.to_str().unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "mountain-car",
@@ -94,7 +81,7 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
         "--out",
         out_s,
     ];
-    let o = hac(&again);
+    let o = hac_output(&again);
     assert!(
         !o.status.success() && text(&o.stderr).contains("--overwrite"),
         "{}",
@@ -106,10 +93,10 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
             .contains("test_episodes = 5"),
         "the first run was kept"
     );
-    let o = hac(&[&again[..], &["--overwrite", "--seed", "3"]].concat());
+    let o = hac_output(&[&again[..], &["--overwrite", "--seed", "3"]].concat());
     assert!(o.status.success(), "{}", text(&o.stderr));
 
-    let o = hac(&["eval", "--run", out_s, "--episodes", "4", "--json"]);
+    let o = hac_output(&["eval", "--run", out_s, "--episodes", "4", "--json"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
     assert_eq!(result["episodes"], 4);
@@ -131,7 +118,7 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
     );
 
     // The behaviour policy of training: subgoals are tested, and each penalty is a test.
-    let o = hac(&[
+    let o = hac_output(&[
         "eval",
         "--run",
         out_s,
@@ -156,7 +143,7 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
 
     // --per-episode: one line per episode with its end goal, final state and what each level
     // did, then the summary and a line per level.
-    let o = hac(&["eval", "--run", out_s, "--episodes", "3", "--per-episode"]);
+    let o = hac_output(&["eval", "--run", out_s, "--episodes", "3", "--per-episode"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let stdout = text(&o.stdout);
     let lines: Vec<&str> = stdout.lines().collect();
@@ -226,7 +213,7 @@ fn bad_configuration_is_rejected_before_training_with_the_key_named() {
     for (args, key) in cases {
         let mut all = vec!["train", "--episodes", "1", "--out", out_s];
         all.extend_from_slice(args);
-        let o = hac(&all);
+        let o = hac_output(&all);
         assert!(!o.status.success(), "{args:?} was accepted");
         let err = text(&o.stderr);
         assert!(
@@ -241,12 +228,12 @@ fn bad_configuration_is_rejected_before_training_with_the_key_named() {
 
     let file = out.with_extension("toml");
     std::fs::write(&file, "env = \"pendulum\"\nepisodez = 3\n").unwrap();
-    let o = hac(&["train", "--config", file.to_str().unwrap(), "--out", out_s]);
+    let o = hac_output(&["train", "--config", file.to_str().unwrap(), "--out", out_s]);
     assert!(!o.status.success());
     assert!(text(&o.stderr).contains("episodez"), "{}", text(&o.stderr));
     let _ = std::fs::remove_file(&file);
 
-    let o = hac(&["eval", "--run", out_s]);
+    let o = hac_output(&["eval", "--run", out_s]);
     assert!(!o.status.success());
     assert!(
         text(&o.stderr).contains("config.toml"),
@@ -257,7 +244,7 @@ fn bad_configuration_is_rejected_before_training_with_the_key_named() {
 
 #[test]
 fn print_config_shows_the_resolved_configuration() {
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "pendulum",
@@ -293,7 +280,7 @@ fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
 
 #[test]
 fn env_list_and_describe() {
-    let o = hac(&["env", "list"]);
+    let o = hac_output(&["env", "list"]);
     assert!(o.status.success());
     let list = text(&o.stdout);
     assert!(
@@ -308,12 +295,12 @@ fn env_list_and_describe() {
         .all(|name| list.contains(name)),
         "{list}"
     );
-    let o = hac(&["env", "describe", "pendulum", "--json"]);
+    let o = hac_output(&["env", "describe", "pendulum", "--json"]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
     assert_eq!(d["spec"]["state_dim"], 3);
     assert_eq!(d["defaults"][1]["horizon"], 32);
-    let o = hac(&["env", "describe", "four-rooms-25", "--json"]);
+    let o = hac_output(&["env", "describe", "four-rooms-25", "--json"]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
     assert_eq!(
@@ -325,7 +312,7 @@ fn env_list_and_describe() {
     assert_eq!(d["tabular"]["all_segments"], true);
     // Another budget: H of every level count follows it (12 / 6 for 144; 22 / 8 for 480).
     assert_eq!(d["defaults"][1]["horizon"], 12);
-    let o = hac(&[
+    let o = hac_output(&[
         "env",
         "describe",
         "four-rooms-25",
@@ -337,16 +324,16 @@ fn env_list_and_describe() {
     assert_eq!(d["spec"]["max_actions"], 480);
     assert_eq!(d["defaults"][1]["horizon"], 22);
     assert_eq!(d["defaults"][2]["horizon"], 8);
-    let o = hac(&["env", "describe", "pendulum", "--max-actions", "0"]);
+    let o = hac_output(&["env", "describe", "pendulum", "--max-actions", "0"]);
     assert!(
         !o.status.success() && text(&o.stderr).contains("--max-actions"),
         "{}",
         text(&o.stderr)
     );
-    let o = hac(&["env", "describe", "four-rooms"]);
+    let o = hac_output(&["env", "describe", "four-rooms"]);
     assert!(text(&o.stdout).contains("tabular Q-learning"));
     // The UR5's joint angles are compared along the circle, its joint speeds are not.
-    let o = hac(&["env", "describe", "ur5-reacher", "--json"]);
+    let o = hac_output(&["env", "describe", "ur5-reacher", "--json"]);
     let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
     assert_eq!(
         d["spec"]["end_goal_angles"],
@@ -356,14 +343,14 @@ fn env_list_and_describe() {
         d["spec"]["subgoal_angles"],
         serde_json::json!([true, true, true, false, false, false])
     );
-    let o = hac(&["env", "describe", "ur5-reacher"]);
+    let o = hac_output(&["env", "describe", "ur5-reacher"]);
     assert!(
         text(&o.stdout).contains("end goal [0, 1, 2]  subgoal [0, 1, 2]"),
         "{}",
         text(&o.stdout)
     );
     // The cart-pole's pole angle is its one circular dimension.
-    let o = hac(&["env", "describe", "cartpole", "--json"]);
+    let o = hac_output(&["env", "describe", "cartpole", "--json"]);
     assert!(o.status.success(), "{}", text(&o.stderr));
     let d: serde_json::Value = serde_json::from_str(&text(&o.stdout)).unwrap();
     assert_eq!(d["spec"]["state_dim"], 5);
@@ -376,13 +363,13 @@ fn env_list_and_describe() {
         .map(|k| d["defaults"][k]["horizon"].clone())
         .collect();
     assert_eq!(horizons, [1000, 32, 10]);
-    let o = hac(&["env", "describe", "cartpole"]);
+    let o = hac_output(&["env", "describe", "cartpole"]);
     assert!(
         text(&o.stdout).contains("end goal [1]  subgoal [1]"),
         "{}",
         text(&o.stdout)
     );
-    let o = hac(&["env", "describe", "nope"]);
+    let o = hac_output(&["env", "describe", "nope"]);
     assert!(!o.status.success() && text(&o.stderr).contains("unknown environment"));
 }
 
@@ -484,7 +471,7 @@ fn an_experiment_summarises_the_runs_that_finished_when_one_fails() {
     let out = scratch("experiment-failed-run");
     std::fs::create_dir_all(&out).unwrap();
     std::fs::write(out.join("mountain-car-1l-seed1"), "not a directory").unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "mountain-car",
@@ -526,7 +513,7 @@ fn an_experiment_summarises_the_runs_that_finished_when_one_fails() {
 fn experiment_runs_the_grid_and_summarises_it() {
     let out = scratch("experiment");
     let out_s = out.to_str().unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "mountain-car",
@@ -578,7 +565,7 @@ fn experiment_runs_the_grid_and_summarises_it() {
     );
 
     // Re-running into the same directory is refused before anything runs.
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "mountain-car",
@@ -595,7 +582,7 @@ fn experiment_runs_the_grid_and_summarises_it() {
         text(&o.stderr)
     );
 
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "mountain-car",
@@ -670,7 +657,7 @@ fn interrupt_saves_the_run(env: &str) {
 fn four_rooms_trains_with_the_tabular_learner_and_eval_reads_it_back() {
     let out = scratch("four-rooms");
     let out_s = out.to_str().unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -721,7 +708,7 @@ fn four_rooms_trains_with_the_tabular_learner_and_eval_reads_it_back() {
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["episodes"], 250);
 
-    let o = hac(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
+    let o = hac_output(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let result: serde_json::Value = serde_json::from_str(text(&o.stdout).trim()).unwrap();
     assert_eq!(result["env"], "four-rooms");
@@ -730,10 +717,10 @@ fn four_rooms_trains_with_the_tabular_learner_and_eval_reads_it_back() {
     let rate = result["success_rate"].as_f64().unwrap();
     assert!(rate > 0.3, "greedy success from the saved tables: {rate}");
     // The same seed gives the same episodes.
-    let again = hac(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
+    let again = hac_output(&["eval", "--run", out_s, "--episodes", "100", "--json"]);
     assert_eq!(text(&again.stdout), text(&o.stdout));
 
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -753,7 +740,7 @@ fn four_rooms_trains_with_the_tabular_learner_and_eval_reads_it_back() {
 #[test]
 fn experiment_runs_four_rooms_seeds() {
     let out = scratch("four-rooms-experiment");
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "four-rooms",
@@ -784,7 +771,7 @@ fn a_run_budget_caps_training_and_evaluation_episodes() {
     // takes more, evaluation of the saved run neither, and the default H follows (3^2 >= 5).
     let out = scratch("four-rooms-budget");
     let out_s = out.to_str().unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -808,7 +795,7 @@ fn a_run_budget_caps_training_and_evaluation_episodes() {
     let steps = summary["env_steps"].as_u64().unwrap();
     assert!(steps <= 100 * 5, "{steps} training steps in 100 episodes");
 
-    let o = hac(&["eval", "--run", out_s, "--episodes", "30", "--per-episode"]);
+    let o = hac_output(&["eval", "--run", out_s, "--episodes", "30", "--per-episode"]);
     assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
     let steps: Vec<u64> = text(&o.stdout)
         .lines()
@@ -822,7 +809,7 @@ fn a_run_budget_caps_training_and_evaluation_episodes() {
         "{steps:?}"
     );
 
-    let o = hac(&[
+    let o = hac_output(&[
         "experiment",
         "--env",
         "four-rooms",
@@ -846,7 +833,7 @@ fn a_run_budget_caps_training_and_evaluation_episodes() {
         "{config}"
     );
 
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -881,7 +868,7 @@ fn gif_frames(path: &Path) -> usize {
 fn render_draws_a_pendulum_episode_as_a_gif() {
     let out = scratch("render-pendulum");
     let run = out.join("run");
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "pendulum",
@@ -898,7 +885,7 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
     ]);
     assert!(o.status.success(), "train failed: {}", text(&o.stderr));
     let gif = out.join("episode.gif");
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run.to_str().unwrap(),
@@ -913,7 +900,7 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
     assert!(text(&o.stdout).contains("31 frames"), "{}", text(&o.stdout));
 
     // Errors name the problem: no run, an unwritable output, an output file that is no GIF.
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         out.join("nope").to_str().unwrap(),
@@ -926,7 +913,7 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
         text(&o.stderr)
     );
     let blocked = out.join("episode.gif").join("x.gif");
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run.to_str().unwrap(),
@@ -938,7 +925,7 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
         "{}",
         text(&o.stderr)
     );
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run.to_str().unwrap(),
@@ -957,7 +944,7 @@ fn render_draws_a_pendulum_episode_as_a_gif() {
 fn render_draws_a_cartpole_episode() {
     let out = scratch("render-cartpole");
     let run = out.join("run");
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "cartpole",
@@ -976,7 +963,7 @@ fn render_draws_a_cartpole_episode() {
     ]);
     assert!(o.status.success(), "train failed: {}", text(&o.stderr));
     let gif = out.join("episode.gif");
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run.to_str().unwrap(),
@@ -994,7 +981,7 @@ fn render_draws_a_cartpole_episode() {
 fn render_draws_four_rooms_as_a_gif_or_png_frames() {
     let out = scratch("render-four-rooms");
     let run = out.join("run");
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -1008,7 +995,7 @@ fn render_draws_four_rooms_as_a_gif_or_png_frames() {
     assert!(o.status.success(), "train failed: {}", text(&o.stderr));
     let run_s = run.to_str().unwrap();
     let gif = out.join("episode.gif");
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run_s,
@@ -1022,7 +1009,7 @@ fn render_draws_four_rooms_as_a_gif_or_png_frames() {
     assert!(frames > 1, "{frames} frames");
 
     let pngs = out.join("frames");
-    let o = hac(&[
+    let o = hac_output(&[
         "render",
         "--run",
         run_s,
@@ -1043,7 +1030,7 @@ fn render_draws_four_rooms_as_a_gif_or_png_frames() {
     assert_eq!(&first[..8], b"\x89PNG\r\n\x1a\n");
 
     // A directory already holding files is not written into.
-    let o = hac(&["render", "--run", run_s, "--out", pngs.to_str().unwrap()]);
+    let o = hac_output(&["render", "--run", run_s, "--out", pngs.to_str().unwrap()]);
     assert!(
         !o.status.success() && text(&o.stderr).contains("not empty"),
         "{}",
@@ -1055,14 +1042,14 @@ fn render_draws_four_rooms_as_a_gif_or_png_frames() {
 #[test]
 fn health_reports_an_unreachable_server_and_a_bad_url() {
     // Port 1 on loopback: nothing listens there.
-    let o = hac(&["health", "http://127.0.0.1:1", "--timeout", "2"]);
+    let o = hac_output(&["health", "http://127.0.0.1:1", "--timeout", "2"]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
     assert!(
         text(&o.stderr).contains("connecting to http://127.0.0.1:1"),
         "{}",
         text(&o.stderr)
     );
-    let o = hac(&["health", "not a url"]);
+    let o = hac_output(&["health", "not a url"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(
         text(&o.stderr).contains("invalid server URL `not a url`"),
@@ -1073,7 +1060,7 @@ fn health_reports_an_unreachable_server_and_a_bad_url() {
 
 #[test]
 fn bench_connections_holds_actors_against_a_learner_process() {
-    let o = hac(&[
+    let o = hac_output(&[
         "bench",
         "connections",
         "--actors",
@@ -1097,7 +1084,7 @@ fn bench_connections_holds_actors_against_a_learner_process() {
 
 #[test]
 fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
-    let o = hac(&[
+    let o = hac_output(&[
         "bench",
         "update",
         "--batch",
@@ -1153,7 +1140,7 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
     let scaling = rows[1]["sgemm_scaling"].as_f64().unwrap();
     assert!(scaling.is_finite() && scaling > 0.1, "{report}");
 
-    let o = hac(&["bench", "update", "--level", "2"]);
+    let o = hac_output(&["bench", "update", "--level", "2"]);
     assert!(!o.status.success());
     assert!(
         text(&o.stderr).contains("--level 2 is not a level of a 2-level hierarchy"),
@@ -1165,7 +1152,7 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
 #[test]
 fn an_address_may_be_host_port_and_an_error_says_each_cause_once() {
     // Port 1 on loopback: nothing listens there.
-    let o = hac(&["health", "127.0.0.1:1", "--timeout", "2"]);
+    let o = hac_output(&["health", "127.0.0.1:1", "--timeout", "2"]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
     let stderr = text(&o.stderr);
     assert!(stderr.contains("connecting to 127.0.0.1:1: "), "{stderr}");
@@ -1201,13 +1188,13 @@ fn status_refuses_a_learner_given_as_an_actor() {
     let addr = common::listening_addr(&mut learner, &dir);
     // Both forms of the address, in every command that takes one.
     for url in [addr.clone(), format!("http://{addr}")] {
-        let o = hac(&["health", &url]);
+        let o = hac_output(&["health", &url]);
         assert!(o.status.success(), "{url}: {}", text(&o.stderr));
         assert!(text(&o.stdout).contains("SERVING"), "{}", text(&o.stdout));
-        let o = hac(&["status", "--learner", &url, "--json"]);
+        let o = hac_output(&["status", "--learner", &url, "--json"]);
         assert!(o.status.success(), "{url}: {}", text(&o.stderr));
     }
-    let o = hac(&["status", "--actor", &addr]);
+    let o = hac_output(&["status", "--actor", &addr]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
     assert!(
         text(&o.stderr).contains(&format!("{addr} answers as a learner, not an actor")),

@@ -4,11 +4,10 @@
 //! same address.
 
 use crate::common;
-use std::path::{Path, PathBuf};
-use std::process::Child;
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use common::{Processes, all_logs, count, hac, listening_addr, log, summary};
+use common::{Processes, all_logs, count, hac, learner, listening_addr, log, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
 
@@ -139,25 +138,6 @@ fn with_one_episode_in_flight_three_trainers_take_turns() {
 }
 
 /// Starts `hac learner` with `args` and returns it with its `host:port`.
-fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
-    let mut child = hac(args, logs, name);
-    let addr = listening_addr(&mut child, logs);
-    (child, addr)
-}
-
-/// Waits until `path` holds at least `lines` lines.
-fn wait_for_lines(path: &Path, lines: usize, logs: &Path) {
-    let started = Instant::now();
-    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < lines {
-        assert!(
-            started.elapsed() < DEADLINE,
-            "{} never reached {lines} lines\n{}",
-            path.display(),
-            all_logs(logs)
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
 
 #[test]
 fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
@@ -197,7 +177,7 @@ fn an_actor_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
         processes.0.push((name.into(), hac(&args, &dir, name)));
     }
     // Mid-run: once the first evaluation is on the curve (20 episodes trained).
-    wait_for_lines(&out.join("curve.csv"), 2, &dir);
+    common::wait_for_lines(&out.join("curve.csv"), 2, &dir, DEADLINE);
     let (_, victim) = processes
         .0
         .iter_mut()

@@ -5,28 +5,14 @@
 //! starts.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::time::SystemTime;
 
-fn hac(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("the hac binary runs")
-}
+use crate::common;
+use common::{hac_output, text};
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "hac-experiment-resume-test-{}-{name}",
-        std::process::id()
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
+    common::fresh_path("hac-experiment-resume-test", name)
 }
 
 /// `hac experiment` over a grid small enough for a debug build: a neural run (pendulum) and a
@@ -57,7 +43,7 @@ fn experiment(out: &Path, extra: &[&str]) -> Output {
         out.to_str().unwrap(),
     ];
     args.extend_from_slice(extra);
-    hac(&args)
+    hac_output(&args)
 }
 
 /// A file's bytes and modification time.
@@ -260,7 +246,7 @@ fn resume_refuses_a_finished_run_of_another_configuration_and_overwrite() {
             out_s,
         ];
         args.extend_from_slice(extra);
-        hac(&args)
+        hac_output(&args)
     };
     let o = grid("1", "4", &[]);
     assert!(o.status.success(), "experiment failed: {}", text(&o.stderr));

@@ -2,26 +2,17 @@
 //! safetensors format and the layout in docs/CHECKPOINTS.md (a plain forward pass written here),
 //! it gives the trained run's actions.
 
+use crate::common;
+use common::hac_output;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use hac_agent::{Agent, RunConfig};
 use hac_core::Rng;
 use safetensors::SafeTensors;
 
-fn hac(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("the hac binary runs")
-}
-
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hac-export-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
+    common::fresh_path("hac-export-test", name)
 }
 
 /// One level of the exported policy, read by the documented layout alone.
@@ -109,7 +100,7 @@ fn train(out: &Path, algo: &str) {
         // A few updates are enough to export.
         args.extend(["--set", "hiro.updates_per_step=0.01"]);
     }
-    let o = hac(&args);
+    let o = hac_output(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
@@ -130,7 +121,7 @@ fn exported_policy_reproduces(algo: &str) {
     let run = dir.join("run");
     train(&run, algo);
     let file = dir.join("policy.safetensors");
-    let o = hac(&[
+    let o = hac_output(&[
         "export",
         "--run",
         run.to_str().unwrap(),
@@ -205,7 +196,7 @@ fn exported_policy_reproduces(algo: &str) {
 fn export_refuses_grid_worlds_and_names_the_q_tables() {
     let dir = scratch("four-rooms");
     let run = dir.join("run");
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "four-rooms",
@@ -217,7 +208,7 @@ fn export_refuses_grid_worlds_and_names_the_q_tables() {
         run.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let o = hac(&[
+    let o = hac_output(&[
         "export",
         "--run",
         run.to_str().unwrap(),
@@ -238,7 +229,7 @@ fn the_best_round_is_kept_evaluated_and_exported() {
     let dir = scratch("best");
     let run = dir.join("run");
     let run_s = run.to_str().unwrap();
-    let o = hac(&[
+    let o = hac_output(&[
         "train",
         "--env",
         "pendulum",
@@ -272,7 +263,7 @@ fn the_best_round_is_kept_evaluated_and_exported() {
     assert_eq!(record["levels"], 2);
     assert!((record["success_rate"].as_f64().unwrap() as f32 - top).abs() < 1e-6);
 
-    let o = hac(&[
+    let o = hac_output(&[
         "eval",
         "--run",
         run_s,
@@ -289,7 +280,7 @@ fn the_best_round_is_kept_evaluated_and_exported() {
 
     // The exported file holds the best round's actors: the same actions.
     let file = dir.join("best.safetensors");
-    let o = hac(&[
+    let o = hac_output(&[
         "export",
         "--run",
         run_s,
@@ -343,7 +334,7 @@ fn the_best_round_is_kept_evaluated_and_exported() {
             file.to_str().unwrap(),
         ],
     ] {
-        let o = hac(&args);
+        let o = hac_output(&args);
         assert!(!o.status.success(), "{args:?}");
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(stderr.contains("no best weights"), "{args:?}: {stderr}");

@@ -4,7 +4,7 @@
 
 use std::io::{BufRead as _, BufReader, Read as _};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Output, Stdio};
+use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use hac_proto::pb;
@@ -22,7 +22,7 @@ use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
 
 use crate::common;
 
-use common::{Processes, all_logs};
+use common::{Processes, all_logs, hac_output, hac_output_env};
 
 const DEADLINE: Duration = Duration::from_secs(180);
 
@@ -48,19 +48,6 @@ fn hac_with_env(args: &[&str], env: &[(&str, &str)], logs: &Path, name: &str) ->
 
 fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
     hac_with_env(args, &[], logs, name)
-}
-
-/// `hac <args>` to completion, with extra environment.
-fn hac_output(args: &[&str], env: &[(&str, &str)]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .env_remove("HAC_TOKEN")
-        .env_remove("HAC_TOKEN_FILE")
-        .envs(env.iter().copied())
-        .stdin(Stdio::null())
-        .output()
-        .expect("the hac binary runs")
 }
 
 impl Processes {
@@ -131,7 +118,7 @@ fn status_json(args: &[&str], env: &[(&str, &str)]) -> Value {
     let mut all = vec!["status"];
     all.extend_from_slice(args);
     all.push("--json");
-    let out = hac_output(&all, env);
+    let out = hac_output_env(&all, env);
     assert!(
         out.status.success(),
         "hac {all:?}: {}",
@@ -360,7 +347,7 @@ fn a_real_run_reports_coherent_status_metrics_health_and_reflection_then_drains_
     }
 
     // The table.
-    let table = hac_output(&["status", "--learner", &addr], &[]);
+    let table = hac_output(&["status", "--learner", &addr]);
     assert!(table.status.success());
     let table = String::from_utf8(table.stdout).unwrap();
     for expected in [
@@ -388,7 +375,7 @@ fn a_real_run_reports_coherent_status_metrics_health_and_reflection_then_drains_
         u(&actor["episodes"]) > 0 && u(&actor["incarnation"]) == u(&trainer_seen["incarnation"]),
         "{actor}\nlearner's view: {trainer_seen}"
     );
-    let actor_table = hac_output(&["status", "--actor", &trainer_status], &[]);
+    let actor_table = hac_output(&["status", "--actor", &trainer_status]);
     let actor_table = String::from_utf8(actor_table.stdout).unwrap();
     assert!(
         actor_table.contains("actor trainer-0  running  role trainer"),
@@ -684,13 +671,13 @@ fn a_run_behind_a_token_and_tls_keeps_strangers_out() {
     let tls_flags = ["--tls-ca", ca_s, "--tls-domain", "localhost"];
     let mut args = vec!["status", "--learner", &url];
     args.extend_from_slice(&tls_flags);
-    let anonymous = hac_output(&args, &[]);
+    let anonymous = hac_output(&args);
     assert!(!anonymous.status.success());
     let stderr = String::from_utf8_lossy(&anonymous.stderr);
     assert!(stderr.contains("Unauthenticated"), "{stderr}");
     refused += 1;
     // Without TLS nothing gets through at all.
-    let plain = hac_output(
+    let plain = hac_output_env(
         &[
             "status",
             "--learner",
@@ -704,7 +691,7 @@ fn a_run_behind_a_token_and_tls_keeps_strangers_out() {
     // An actor with the wrong token stops at once, refused.
     let mut intruder_args = vec!["actor", "--learner", &url, "--id", "intruder"];
     intruder_args.extend_from_slice(&tls_flags);
-    let intruder = hac_output(&intruder_args, &[("HAC_TOKEN", "not-the-token")]);
+    let intruder = hac_output_env(&intruder_args, &[("HAC_TOKEN", "not-the-token")]);
     assert!(!intruder.status.success());
     let stderr = String::from_utf8_lossy(&intruder.stderr);
     assert!(

@@ -8,19 +8,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use common::{Processes, all_logs, hac, listening_addr};
+use common::{Processes, all_logs, hac, learner};
 
 const DEADLINE: Duration = Duration::from_secs(240);
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-resume-test", name)
-}
-
-/// Starts `hac learner` with `args` and returns it with its `host:port`.
-fn learner(args: &[&str], logs: &Path, name: &str) -> (Child, String) {
-    let mut child = hac(args, logs, name);
-    let addr = listening_addr(&mut child, logs);
-    (child, addr)
 }
 
 impl Processes {

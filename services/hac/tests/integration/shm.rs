@@ -3,11 +3,11 @@
 //! side on one host.
 
 use crate::common;
-use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
+use std::time::Duration;
 
 use common::{
-    Processes, USING_SHM, actor, all_logs, assert_exactly_once, count, log, refused_while_running,
+    Processes, USING_SHM, actor, assert_exactly_once, count, log, refused_while_running,
     shm_learner as learner, summary,
 };
 
@@ -71,20 +71,6 @@ fn a_learner_two_shm_trainers_a_grpc_trainer_and_an_evaluator_learn_mountain_car
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Waits until `path` holds at least `lines` lines.
-fn wait_for_lines(path: &Path, lines: usize, logs: &Path) {
-    let started = Instant::now();
-    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < lines {
-        assert!(
-            started.elapsed() < DEADLINE,
-            "{} never reached {lines} lines\n{}",
-            path.display(),
-            all_logs(logs)
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 #[test]
 fn a_shm_trainer_killed_mid_run_rejoins_and_every_stored_message_is_stored_once() {
     let dir = scratch("kill");
@@ -118,7 +104,7 @@ fn a_shm_trainer_killed_mid_run_rejoins_and_every_stored_message_is_stored_once(
             .push(actor(&url, name, &["--transport", "shm"], &dir));
     }
     // Mid-run: once the first evaluation is on the curve (20 episodes trained).
-    wait_for_lines(&out.join("curve.csv"), 2, &dir);
+    common::wait_for_lines(&out.join("curve.csv"), 2, &dir, DEADLINE);
     let (_, victim) = processes
         .0
         .iter_mut()

@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use hac_agent::RunConfig;
-use hac_learner::{Learner, LearnerCheckpoint};
+use hac_learner::{Learner, LearnerCheckpoint, RejectReason};
 
 /// Pendulum, 2 levels, seed 1, batches of 4, 3 updates per episode, one hidden layer of 8.
 pub fn small_run(episodes: u64, replay_shards: usize) -> RunConfig {
@@ -54,4 +54,15 @@ pub fn drained(learner: &Learner) {
 #[allow(dead_code)] // not every test file takes checkpoints
 pub fn files(checkpoint: &LearnerCheckpoint) -> BTreeMap<String, Vec<u8>> {
     checkpoint.to_files().into_iter().collect()
+}
+
+/// How many messages the learner refused for `reason` (every reason has a counter).
+pub fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
+    learner
+        .status()
+        .rejected
+        .iter()
+        .find(|(r, _)| *r == reason)
+        .map(|&(_, n)| n)
+        .unwrap()
 }

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use hac_agent::RunConfig;
 use hac_core::Batch;
-use hac_learner::Learner;
+use hac_learner::{Learner, RejectReason};
 use hac_proto::{DecodedBatch, IngestItem};
 use hac_transport::grpc::GrpcLinkOptions;
 
@@ -74,4 +74,14 @@ pub fn runtime() -> tokio::runtime::Runtime {
         .enable_all()
         .build()
         .unwrap()
+}
+
+/// How many messages the learner refused for `reason`.
+pub fn rejected(learner: &Learner, reason: RejectReason) -> u64 {
+    learner
+        .status()
+        .rejected
+        .iter()
+        .find(|(r, _)| *r == reason)
+        .map_or(0, |&(_, n)| n)
 }
