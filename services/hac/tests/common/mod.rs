@@ -49,10 +49,19 @@ pub fn text(bytes: &[u8]) -> String {
 
 /// `hac <args>` with stderr to `<logs>/<name>.log`.
 pub fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
+    hac_with_env(args, &[], logs, name)
+}
+
+/// `hac <args>` with extra environment, stderr to `<logs>/<name>.log`; no log level or token of
+/// the caller's reaches it.
+pub fn hac_with_env(args: &[&str], env: &[(&str, &str)], logs: &Path, name: &str) -> Child {
     let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
     Command::new(env!("CARGO_BIN_EXE_hac"))
         .args(args)
         .env_remove("RUST_LOG")
+        .env_remove("HAC_TOKEN")
+        .env_remove("HAC_TOKEN_FILE")
+        .envs(env.iter().copied())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(log)

@@ -4,7 +4,7 @@
 
 use std::io::{BufRead as _, BufReader, Read as _};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
+use std::process::{Child, ChildStdout, Command};
 use std::time::{Duration, Instant};
 
 use hac_proto::pb;
@@ -22,32 +22,12 @@ use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
 
 use crate::common;
 
-use common::{Processes, all_logs, hac_output, hac_output_env};
+use common::{Processes, all_logs, hac, hac_output, hac_output_env};
 
 const DEADLINE: Duration = Duration::from_secs(180);
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("hac-ops-test", name)
-}
-
-/// `hac <args>` with extra environment, stderr to `<logs>/<name>.log`.
-fn hac_with_env(args: &[&str], env: &[(&str, &str)], logs: &Path, name: &str) -> Child {
-    let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .env_remove("HAC_TOKEN")
-        .env_remove("HAC_TOKEN_FILE")
-        .envs(env.iter().copied())
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .expect("the hac binary runs")
-}
-
-fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
-    hac_with_env(args, &[], logs, name)
 }
 
 impl Processes {
