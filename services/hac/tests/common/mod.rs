@@ -28,18 +28,25 @@ pub fn hac_output(args: &[&str]) -> Output {
     hac_output_env(args, &[])
 }
 
-/// `hac <args>` to completion with extra environment; no log level or token of the caller's
-/// reaches it.
+/// `hac <args>` to completion with extra environment.
 pub fn hac_output_env(args: &[&str], env: &[(&str, &str)]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hac"))
+    hac_command(args, env)
+        .output()
+        .expect("the hac binary runs")
+}
+
+/// `hac <args>` with extra environment and no stdin; no log level or token of the caller's
+/// reaches it.
+fn hac_command(args: &[&str], env: &[(&str, &str)]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_hac"));
+    command
         .args(args)
         .env_remove("RUST_LOG")
         .env_remove("HAC_TOKEN")
         .env_remove("HAC_TOKEN_FILE")
         .envs(env.iter().copied())
-        .stdin(Stdio::null())
-        .output()
-        .expect("the hac binary runs")
+        .stdin(Stdio::null());
+    command
 }
 
 /// Output bytes as text.
@@ -52,17 +59,10 @@ pub fn hac(args: &[&str], logs: &Path, name: &str) -> Child {
     hac_with_env(args, &[], logs, name)
 }
 
-/// `hac <args>` with extra environment, stderr to `<logs>/<name>.log`; no log level or token of
-/// the caller's reaches it.
+/// `hac <args>` with extra environment, stderr to `<logs>/<name>.log`.
 pub fn hac_with_env(args: &[&str], env: &[(&str, &str)], logs: &Path, name: &str) -> Child {
     let log = std::fs::File::create(logs.join(format!("{name}.log"))).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .env_remove("HAC_TOKEN")
-        .env_remove("HAC_TOKEN_FILE")
-        .envs(env.iter().copied())
-        .stdin(Stdio::null())
+    hac_command(args, env)
         .stdout(Stdio::piped())
         .stderr(log)
         .spawn()
