@@ -37,7 +37,7 @@ pub fn hac_output_env(args: &[&str], env: &[(&str, &str)]) -> Output {
 
 /// `hac <args>` with extra environment and no stdin; no log level or token of the caller's
 /// reaches it.
-fn hac_command(args: &[&str], env: &[(&str, &str)]) -> Command {
+pub fn hac_command(args: &[&str], env: &[(&str, &str)]) -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_hac"));
     command
         .args(args)

@@ -1168,7 +1168,7 @@ fn status_refuses_a_learner_given_as_an_actor() {
     let dir = scratch("kinds");
     std::fs::create_dir_all(&dir).unwrap();
     let out = dir.join("out");
-    let mut learner = common::hac(
+    let (mut learner, addr) = common::learner(
         &[
             "learner",
             "--env",
@@ -1185,7 +1185,6 @@ fn status_refuses_a_learner_given_as_an_actor() {
         &dir,
         "learner",
     );
-    let addr = common::listening_addr(&mut learner, &dir);
     // Both forms of the address, in every command that takes one.
     for url in [addr.clone(), format!("http://{addr}")] {
         let o = hac_output(&["health", &url]);

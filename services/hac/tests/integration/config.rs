@@ -4,15 +4,16 @@
 //! and docs/CONFIG.md stay in step with the daemons' flags (`HAC_BLESS=1` rewrites them).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+use crate::common::{hac_command, text};
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 fn hac(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_hac"));
-    cmd.args(args).env_remove("RUST_LOG");
+    let mut cmd = hac_command(args, &[]);
     // Nothing from the caller's environment may leak into the cases.
     for (key, _) in std::env::vars() {
         if key.starts_with("HAC_") {
@@ -22,10 +23,6 @@ fn hac(args: &[&str], env: &[(&str, &str)]) -> Output {
     cmd.envs(env.iter().copied())
         .output()
         .expect("the hac binary runs")
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
 }
 
 struct Scratch(PathBuf);

@@ -7,7 +7,7 @@ use crate::common;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use common::{Processes, all_logs, count, hac, learner, listening_addr, log, summary};
+use common::{Processes, all_logs, count, hac, learner, log, summary};
 
 const DEADLINE: Duration = Duration::from_secs(120);
 
@@ -31,8 +31,7 @@ fn a_learner_three_trainers_and_an_evaluator_learn_mountain_car() {
         "--out",
         out_s,
     ]);
-    let mut learner = hac(&args, &dir, "learner");
-    let addr = listening_addr(&mut learner, &dir);
+    let (learner, addr) = learner(&args, &dir, "learner");
     processes.0.push(("learner".into(), learner));
     let url = format!("http://{addr}");
 

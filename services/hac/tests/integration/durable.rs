@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use crate::common;
 
-use common::{Processes, USING_SHM, all_logs, count, hac, listening_addr, summary};
+use common::{Processes, USING_SHM, all_logs, count, hac, hac_command, summary};
 
 /// Kills of the learner with gRPC trainers, and with shared-memory ones.
 const GRPC_KILLS: usize = 5;
@@ -45,15 +45,12 @@ fn learner(out: &Path, listen: &str, logs: &Path, name: &str, shm: bool) -> (Chi
     if shm {
         args.push("--shm");
     }
-    let mut child = hac(&args, logs, name);
-    let addr = listening_addr(&mut child, logs);
-    (child, addr)
+    common::learner(&args, logs, name)
 }
 
 /// The learner's status as JSON, `None` while it does not answer.
 fn status(addr: &str) -> Option<serde_json::Value> {
-    let output = Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(["status", "--learner", addr, "--json"])
+    let output = hac_command(&["status", "--learner", addr, "--json"], &[])
         .output()
         .ok()?;
     if !output.status.success() {
