@@ -15,6 +15,7 @@ mod common;
 mod config;
 mod deploy;
 mod distributed;
+mod docs;
 mod durable;
 mod experiment_resume;
 mod export;
