@@ -5,6 +5,7 @@ use hac_core::{Bounds, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::copy_rows;
+use crate::mlp::MlpTransposed;
 use crate::{Mlp, MlpGrads, MlpWorkspace, NnError};
 
 /// Value of the `format` metadata entry of an actor file.
@@ -224,11 +225,14 @@ impl ActorNet {
     /// samples)`, the pre-activations' mean square over a minibatch of `samples` (of which `ws`
     /// may hold a part), whose gradient `2 c x / (action x samples)` still pulls a saturated
     /// output back where the action gradient through `tanh` has vanished.
+    ///
+    /// `transposed`: the network's transposed weights, if kept (see [`Mlp::backward_with`]).
     pub(crate) fn backward_batch(
         &self,
         ws: &mut MlpWorkspace,
         grads: &mut MlpGrads,
         penalty: Option<(&[f32], f32, usize)>,
+        transposed: Option<&MlpTransposed>,
     ) {
         let a = self.dims.action;
         let (t, g) = ws.output_and_grad_mut();
@@ -248,7 +252,7 @@ impl ActorNet {
                 *g += k * x;
             }
         }
-        self.mlp.backward(ws, Some(grads), 0..0);
+        self.mlp.backward_with(ws, Some(grads), 0..0, transposed);
     }
 }
 
@@ -313,7 +317,12 @@ mod tests {
         }
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(actor.mlp());
-        actor.backward_batch(&mut ws, &mut grads, penalty.map(|c| (pre.as_slice(), c, n)));
+        actor.backward_batch(
+            &mut ws,
+            &mut grads,
+            penalty.map(|c| (pre.as_slice(), c, n)),
+            None,
+        );
 
         let sizes = actor.mlp().sizes();
         let mut x = vec![0.0; (DIMS.state + DIMS.goal) * n];

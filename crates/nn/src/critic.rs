@@ -11,6 +11,7 @@ use hac_core::{LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::copy_rows;
+use crate::mlp::MlpTransposed;
 use crate::{Mlp, MlpGrads, MlpWorkspace, NnError};
 
 /// Minus the critic's value at `x = 0`, whatever the horizon.
@@ -129,12 +130,14 @@ impl CriticNet {
 
     /// Back-propagates the loss gradient with respect to `Q`, given in `ws.output_grad_mut()`
     /// (consumed). With `grads`, sets it to the parameter gradient; with `action_grad`, leaves the
-    /// gradient with respect to the action in `ws.input_grad()` (`action x batch`).
+    /// gradient with respect to the action in `ws.input_grad()` (`action x batch`). `transposed`:
+    /// the network's transposed weights, if kept (see [`Mlp::backward_with`]).
     pub(crate) fn backward_batch(
         &self,
         ws: &mut MlpWorkspace,
         grads: Option<&mut MlpGrads>,
         action_grad: bool,
+        transposed: Option<&MlpTransposed>,
     ) {
         let (g, slope) = ws.grad_and_slope_mut();
         for (g, d) in g.iter_mut().zip(slope) {
@@ -145,7 +148,7 @@ impl CriticNet {
         } else {
             0..0
         };
-        self.mlp.backward(ws, grads, rows);
+        self.mlp.backward_with(ws, grads, rows, transposed);
     }
 
     pub(crate) fn write(&self, prefix: &str, out: &mut TensorWriter) {
@@ -260,7 +263,7 @@ mod tests {
         critic.forward_batch(&mut ws, exact_slope);
         ws.output_grad_mut().copy_from_slice(&r);
         let mut grads = MlpGrads::new(critic.mlp());
-        critic.backward_batch(&mut ws, Some(&mut grads), true);
+        critic.backward_batch(&mut ws, Some(&mut grads), true, None);
 
         // The loss sum(R * Q) on the f64 reference network.
         let sizes = critic.mlp().sizes();
@@ -311,7 +314,7 @@ mod tests {
             );
             ws.output_grad_mut().fill(1.0);
             let mut grads = MlpGrads::new(critic.mlp());
-            critic.backward_batch(&mut ws, Some(&mut grads), true);
+            critic.backward_batch(&mut ws, Some(&mut grads), true, None);
 
             // The output bias's gradient is the sum of dQ/dx = -H s (1 - s), here in f64 as
             // -H e / (1 + e)^2 with e = exp(-x) (1 - s itself rounds to 0 in f64 from x = 37).
@@ -340,7 +343,7 @@ mod tests {
             // The reference's slope, from Q, is exactly zero here.
             critic.forward_batch(&mut ws, false);
             ws.output_grad_mut().fill(1.0);
-            critic.backward_batch(&mut ws, Some(&mut grads), true);
+            critic.backward_batch(&mut ws, Some(&mut grads), true, None);
             assert_eq!(grads.tensors().last().unwrap()[0], 0.0);
         }
     }

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
 use crate::checkpoint::{TensorReader, TensorWriter};
+use crate::mlp::MlpTransposed;
 use crate::{ActorNet, Adam, CriticNet, Mlp, MlpGrads, MlpWorkspace, NnError};
 
 /// Value of the `format` metadata entry of a learner checkpoint.
@@ -345,6 +346,11 @@ struct Model {
     config: LearnerConfig,
     actor: ActorNet,
     critic: CriticNet,
+    /// The transposed weights of `actor` and `critic` that their backward passes read, brought
+    /// up to date wherever the learner changes the weights: each chunk of each part would
+    /// otherwise copy them again.
+    actor_t: MlpTransposed,
+    critic_t: MlpTransposed,
     targets: Option<Targets>,
     batch: BatchCopy,
 }
@@ -477,7 +483,8 @@ impl Model {
             q_sum += q;
             *dq = 2.0 * err * inv_n;
         }
-        critic.backward_batch(ws, Some(&mut chunk.critic_grads), false);
+        let transposed = Some(&self.critic_t);
+        critic.backward_batch(ws, Some(&mut chunk.critic_grads), false, transposed);
         (chunk.sq_err_sum, chunk.q_sum) = (sq_err_sum, q_sum);
     }
 
@@ -520,12 +527,12 @@ impl Model {
             q_sum += q;
             *dq = -inv_n;
         }
-        critic.backward_batch(critic_ws, None, true);
+        critic.backward_batch(critic_ws, None, true, Some(&self.critic_t));
         actor_ws
             .output_grad_mut()
             .copy_from_slice(critic_ws.input_grad());
         let penalty = (c > 0.0).then_some((actor_pre.as_slice(), c, len));
-        actor.backward_batch(actor_ws, actor_grads, penalty);
+        actor.backward_batch(actor_ws, actor_grads, penalty, Some(&self.actor_t));
         chunk.policy_q_sum = q_sum;
     }
 }
@@ -720,6 +727,8 @@ impl LevelLearner {
             critic_grads: MlpGrads::new(critic.mlp()),
             model: Arc::new(Model {
                 config,
+                actor_t: MlpTransposed::new(actor.mlp()),
+                critic_t: MlpTransposed::new(critic.mlp()),
                 actor,
                 critic,
                 targets,
@@ -827,6 +836,7 @@ impl LevelLearner {
         let grads = self.critic_grads.tensors();
         self.critic_opt
             .step(model.critic.mlp_mut().tensors_mut().zip(grads));
+        model.critic_t.refresh(model.critic.mlp());
 
         self.run(Part::Actor, chunks);
         let mut policy_q_sum = 0.0;
@@ -843,6 +853,7 @@ impl LevelLearner {
         let grads = self.actor_grads.tensors();
         self.actor_opt
             .step(model.actor.mlp_mut().tensors_mut().zip(grads));
+        model.actor_t.refresh(model.actor.mlp());
 
         if let Some(t) = &mut model.targets {
             t.actor.mlp_mut().polyak_toward(model.actor.mlp(), t.tau);
@@ -968,6 +979,9 @@ impl LevelLearner {
     pub fn restore(&mut self, backup: &LearnerBackup) {
         let (mut steps, mut slices) = self.state_mut();
         backup.put_back(&mut steps, &mut slices);
+        let model = exclusive(&mut self.model);
+        model.actor_t.refresh(model.actor.mlp());
+        model.critic_t.refresh(model.critic.mlp());
     }
 
     /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in

@@ -9,8 +9,8 @@ use hac_core::Rng;
 use crate::NnError;
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::kernels::{
-    Epilogue, MatRef, SGEMM_MIN_DIM, axpy, dot, fits_panel, fits_sgemm, sgemm, sgemm_then,
-    sgemm_via_then, transpose, vectorized,
+    Epilogue, MatRef, SGEMM_MIN_DIM, axpy, dot, fits_panel, fits_sgemm, has_fma_kernel, sgemm,
+    sgemm_then, sgemm_via_then, transpose, vectorized,
 };
 
 /// Half-width of the output layer's initial weights and biases: small, so that the network
@@ -80,7 +80,10 @@ impl Dense {
     }
 
     /// `dx = W[:, rows]^T dz`: the gradient with respect to the input rows `rows`, then
-    /// `epilogue` on `dx`.
+    /// `epilogue` on `dx`. `wt`, if given, is `W^T` (`inp x out`, column-major, as
+    /// [`MlpTransposed`] keeps it): the kernel then reads its columns in place instead of a copy
+    /// made for this call, with the same floats.
+    #[allow(clippy::too_many_arguments)] // the layer's product, its operands and scratch
     fn mul_transposed(
         &self,
         dz: &[f32],
@@ -88,6 +91,7 @@ impl Dense {
         rows: Range<usize>,
         dx: &mut [f32],
         packed: &mut [f32],
+        wt: Option<&[f32]>,
         epilogue: Epilogue<'_>,
     ) {
         let (inp, out, r) = (self.inp, self.out, rows.len());
@@ -95,6 +99,18 @@ impl Dense {
         let w_cols = &self.w[rows.start * out..rows.end * out];
         // The input gradient of a layer of a few outputs too (the output layer), on a batch.
         if fits_sgemm(r, out, n) || fits_panel(r, n) {
+            if let Some(wt) = wt.filter(|_| has_fma_kernel()) {
+                // Rows `rows` of W^T: contiguous columns, `inp` apart.
+                let a = MatRef {
+                    data: &wt[rows.start..],
+                    rows: r,
+                    cols: out,
+                    rs: 1,
+                    cs: inp,
+                };
+                sgemm_then(dx, a, MatRef::col_major(dz, out, n), epilogue);
+                return;
+            }
             sgemm_via_then(
                 dx,
                 MatRef::col_major(w_cols, out, r).t(),
@@ -291,10 +307,28 @@ impl Mlp {
     pub fn backward(
         &self,
         ws: &mut MlpWorkspace,
-        mut grads: Option<&mut MlpGrads>,
+        grads: Option<&mut MlpGrads>,
         input_rows: Range<usize>,
     ) {
+        self.backward_with(ws, grads, input_rows, None);
+    }
+
+    /// [`backward`](Self::backward), reading the input gradients' transposed weights from
+    /// `transposed` (which must be up to date with this network's weights) where it is given,
+    /// instead of transposing them for this call: the same floats, without a copy of each
+    /// hidden layer's weights per call.
+    pub(crate) fn backward_with(
+        &self,
+        ws: &mut MlpWorkspace,
+        mut grads: Option<&mut MlpGrads>,
+        input_rows: Range<usize>,
+        transposed: Option<&MlpTransposed>,
+    ) {
         debug_assert!(ws.is_for(self), "workspace built for another network");
+        debug_assert!(
+            transposed.is_none_or(|t| t.is_up_to_date(self)),
+            "mlp: transposed weights older than the weights"
+        );
         assert!(
             input_rows.end <= self.input_dim(),
             "mlp: input rows {input_rows:?} out of range"
@@ -331,6 +365,7 @@ impl Mlp {
             if let Some(g) = grads.as_deref_mut() {
                 g.layers[l].set_weight_grad(dz, x, n, packed);
             }
+            let wt = transposed.and_then(|t| t.layer(l));
             if l > 0 {
                 // Through the ReLU of the layer below, whose output is this layer's input.
                 let dx = &mut below[..layer.inp * n];
@@ -338,10 +373,11 @@ impl Mlp {
                     .as_deref_mut()
                     .map(|g| g.layers[l - 1].b.as_mut_slice());
                 let relu = Epilogue::ReluMask { h: x, bias_grad };
-                layer.mul_transposed(dz, n, 0..layer.inp, dx, packed, relu);
+                layer.mul_transposed(dz, n, 0..layer.inp, dx, packed, wt, relu);
             } else if !input_rows.is_empty() {
                 let dx = &mut in_grad[..input_rows.len() * n];
-                layer.mul_transposed(dz, n, input_rows.clone(), dx, packed, Epilogue::Store);
+                let rows = input_rows.clone();
+                layer.mul_transposed(dz, n, rows, dx, packed, wt, Epilogue::Store);
             }
         }
         *in_grad_rows = input_rows.len();
@@ -418,6 +454,71 @@ impl Mlp {
             return Err(NnError::MissingTensor(format!("{prefix}0.weight")));
         }
         Ok(Self { layers })
+    }
+}
+
+/// The transposes `W^T` of an [`Mlp`]'s weight matrices, kept beside it so that the input
+/// gradients of its backward passes ([`Mlp::backward_with`]) read them in place: the kernel needs
+/// `W^T`'s columns contiguous, and without these each pass would copy every layer's weights
+/// transposed (for a 64 x 64 layer about 3 us, 15% of the product it feeds). Worth it where the
+/// weights change less often than they are read: a learner's update reads each network's from
+/// every chunk and changes them once. The owner brings them up to date after each change
+/// ([`refresh`](Self::refresh)); debug builds check it at each use.
+#[derive(Debug, Clone)]
+pub(crate) struct MlpTransposed {
+    /// Layer by layer, `W^T` (`inp x out`, column-major); empty for a layer of one output,
+    /// whose `W^T` is its `W`.
+    layers: Vec<Vec<f32>>,
+}
+
+impl MlpTransposed {
+    /// The transposes of `mlp`'s weights as they are now.
+    pub(crate) fn new(mlp: &Mlp) -> Self {
+        let layers = mlp
+            .layers
+            .iter()
+            .map(|l| {
+                if l.out > 1 {
+                    vec![0.0; l.w.len()]
+                } else {
+                    Vec::new()
+                }
+            })
+            .collect();
+        let mut t = Self { layers };
+        t.refresh(mlp);
+        t
+    }
+
+    /// Brings the transposes up to date with `mlp`'s weights (the network they were made for).
+    pub(crate) fn refresh(&mut self, mlp: &Mlp) {
+        debug_assert_eq!(self.layers.len(), mlp.layers.len());
+        for (wt, layer) in self.layers.iter_mut().zip(&mlp.layers) {
+            if !wt.is_empty() {
+                vectorized(
+                    #[inline(always)]
+                    || transpose(&layer.w, layer.out, layer.inp, wt),
+                );
+            }
+        }
+    }
+
+    /// Layer `l`'s `W^T`, if it is kept.
+    fn layer(&self, l: usize) -> Option<&[f32]> {
+        Some(self.layers[l].as_slice()).filter(|wt| !wt.is_empty())
+    }
+
+    /// Whether these are the transposes of `mlp`'s weights as they are now.
+    fn is_up_to_date(&self, mlp: &Mlp) -> bool {
+        self.layers.len() == mlp.layers.len()
+            && self.layers.iter().zip(&mlp.layers).all(|(wt, layer)| {
+                wt.is_empty()
+                    || (0..layer.out).all(|i| {
+                        (0..layer.inp).all(|j| {
+                            wt[j + i * layer.inp].to_bits() == layer.w[i + j * layer.out].to_bits()
+                        })
+                    })
+            })
     }
 }
 
@@ -723,6 +824,48 @@ mod tests {
             input_grads.push(ws.input_grad().to_vec());
         }
         assert_eq!(input_grads[0], input_grads[1]);
+    }
+
+    #[test]
+    fn kept_transposes_give_the_same_bits_as_a_copy_per_call() {
+        // Layers the kernel runs (20 x 40, 40 x 20 and the 20-row input gradients of a 40 x 3
+        // layer, with rows over a whole vector), the thin ones beside them, a range of input rows
+        // of more than one row (the kernel, reading rows of a kept W^T) and of one (the vector
+        // loops); a batch of a few samples and one of a single sample.
+        let mut rng = Rng::seed_from(7);
+        let mlp = Mlp::new(&[40, 20, 40, 3, 1], &mut rng);
+        let transposed = MlpTransposed::new(&mlp);
+        for (n, rows) in [(37, 2..39), (37, 5..6), (1, 0..40)] {
+            let x = uniform_vec(&mut rng, 40 * n, 1.0);
+            let r = uniform_vec(&mut rng, n, 1.0);
+            let mut ws = MlpWorkspace::new(&mlp, n);
+            let mut results = Vec::new();
+            for t in [None, Some(&transposed)] {
+                ws.input_mut().copy_from_slice(&x);
+                mlp.forward(&mut ws);
+                ws.output_grad_mut().copy_from_slice(&r);
+                let mut grads = MlpGrads::new(&mlp);
+                mlp.backward_with(&mut ws, Some(&mut grads), rows.clone(), t);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                let grads: Vec<Vec<u32>> = grads.tensors().map(bits).collect();
+                results.push((grads, bits(ws.input_grad())));
+            }
+            assert_eq!(results[0], results[1], "batch {n}, input rows {rows:?}");
+        }
+    }
+
+    #[test]
+    fn transposes_follow_the_weights_only_when_refreshed() {
+        let mut rng = Rng::seed_from(8);
+        let mut mlp = Mlp::new(&[4, 16, 8, 1], &mut rng);
+        let mut transposed = MlpTransposed::new(&mlp);
+        assert!(transposed.is_up_to_date(&mlp));
+        // A layer of one output keeps no copy: its W^T is its W.
+        assert!(transposed.layer(2).is_none() && transposed.layer(1).is_some());
+        mlp.tensors_mut().nth(2).unwrap()[5] += 1.0;
+        assert!(!transposed.is_up_to_date(&mlp));
+        transposed.refresh(&mlp);
+        assert!(transposed.is_up_to_date(&mlp));
     }
 
     #[test]

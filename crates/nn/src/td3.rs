@@ -464,7 +464,7 @@ impl Td3Learner {
             .output_grad_mut()
             .copy_from_slice(self.critic_ws.input_grad());
         self.actor
-            .backward_batch(&mut self.actor_ws, &mut self.actor_grads, None);
+            .backward_batch(&mut self.actor_ws, &mut self.actor_grads, None, None);
         let grads = self.actor_grads.tensors();
         self.actor_opt
             .step(self.actor.mlp_mut().tensors_mut().zip(grads));
