@@ -483,8 +483,8 @@ impl Model {
             q_sum += q;
             *dq = 2.0 * err * inv_n;
         }
-        let transposed = Some(&self.critic_t);
-        critic.backward_batch(ws, Some(&mut chunk.critic_grads), false, transposed);
+        let grads = Some(&mut chunk.critic_grads);
+        critic.backward_batch(ws, grads, false, Some(&self.critic_t));
         (chunk.sq_err_sum, chunk.q_sum) = (sq_err_sum, q_sum);
     }
 

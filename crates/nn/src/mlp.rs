@@ -510,15 +510,9 @@ impl MlpTransposed {
 
     /// Whether these are the transposes of `mlp`'s weights as they are now.
     fn is_up_to_date(&self, mlp: &Mlp) -> bool {
-        self.layers.len() == mlp.layers.len()
-            && self.layers.iter().zip(&mlp.layers).all(|(wt, layer)| {
-                wt.is_empty()
-                    || (0..layer.out).all(|i| {
-                        (0..layer.inp).all(|j| {
-                            wt[j + i * layer.inp].to_bits() == layer.w[i + j * layer.out].to_bits()
-                        })
-                    })
-            })
+        let bits = |v: &Vec<f32>| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let now = Self::new(mlp);
+        self.layers.iter().map(bits).eq(now.layers.iter().map(bits))
     }
 }
 
