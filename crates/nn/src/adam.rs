@@ -68,28 +68,32 @@ impl Adam {
 
     /// One step on every `(parameters, gradient)` pair, in the order given at construction.
     pub fn step<'a>(&mut self, tensors: impl IntoIterator<Item = (&'a mut [f32], &'a [f32])>) {
-        self.steps += 1;
-        let t = self.steps as f64;
-        let step_size = (f64::from(self.lr) / (1.0 - f64::from(BETA1).powf(t))) as f32;
-        let inv_sqrt_bias2 = (1.0 / (1.0 - f64::from(BETA2).powf(t)).sqrt()) as f32;
+        let sizes = self.begin_step();
         let mut count = 0;
         for ((p, g), (m, v)) in tensors.into_iter().zip(&mut self.moments) {
-            debug_assert_eq!(p.len(), g.len());
-            debug_assert_eq!(p.len(), m.len());
-            vectorized(
-                #[inline(always)]
-                || {
-                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut())
-                    {
-                        *m = BETA1 * *m + (1.0 - BETA1) * g;
-                        *v = BETA2 * *v + (1.0 - BETA2) * g * g;
-                        *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + EPSILON);
-                    }
-                },
-            );
+            sizes.apply(p, g, m, v);
             count += 1;
         }
         debug_assert_eq!(count, self.moments.len(), "adam: tensor count changed");
+    }
+
+    /// Counts a step and returns its step sizes, for a step taken tensor by tensor
+    /// ([`StepSizes::apply`] on each tensor and its [`moments`](Self::moments_mut), once each):
+    /// the same floats as [`step`](Self::step).
+    pub(crate) fn begin_step(&mut self) -> StepSizes {
+        self.steps += 1;
+        let t = self.steps as f64;
+        StepSizes {
+            step_size: (f64::from(self.lr) / (1.0 - f64::from(BETA1).powf(t))) as f32,
+            inv_sqrt_bias2: (1.0 / (1.0 - f64::from(BETA2).powf(t)).sqrt()) as f32,
+        }
+    }
+
+    /// The moments `(m, v)` of tensor `i` themselves, to be moved out (to another thread) and
+    /// put back with [`std::mem::swap`].
+    pub(crate) fn moments_mut(&mut self, i: usize) -> (&mut Vec<f32>, &mut Vec<f32>) {
+        let (m, v) = &mut self.moments[i];
+        (m, v)
     }
 
     /// Stores the moments as `{prefix}m.{i}` / `{prefix}v.{i}` and the step count as metadata.
@@ -109,6 +113,36 @@ impl Adam {
             file.read_into(&format!("{prefix}v.{i}"), v)?;
         }
         Ok(())
+    }
+}
+
+/// The bias-corrected step sizes of one Adam step ([`Adam::begin_step`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct StepSizes {
+    step_size: f32,
+    inv_sqrt_bias2: f32,
+}
+
+impl StepSizes {
+    /// The step on one tensor: parameters `p`, gradient `g`, moments `m` and `v`.
+    pub(crate) fn apply(self, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+        debug_assert_eq!(p.len(), g.len());
+        debug_assert_eq!(p.len(), m.len());
+        debug_assert_eq!(p.len(), v.len());
+        let Self {
+            step_size,
+            inv_sqrt_bias2,
+        } = self;
+        vectorized(
+            #[inline(always)]
+            || {
+                for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                    *m = BETA1 * *m + (1.0 - BETA1) * g;
+                    *v = BETA2 * *v + (1.0 - BETA2) * g * g;
+                    *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + EPSILON);
+                }
+            },
+        );
     }
 }
 

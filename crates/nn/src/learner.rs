@@ -3,14 +3,15 @@
 
 use std::ops::Range;
 use std::sync::mpsc::{self, Receiver, RecvError, SyncSender, TryRecvError};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
+use crate::adam::StepSizes;
 use crate::checkpoint::{TensorReader, TensorWriter};
-use crate::mlp::MlpTransposed;
+use crate::mlp::{MlpTransposed, add_assign, transpose_weights};
 use crate::{ActorNet, Adam, CriticNet, Mlp, MlpGrads, MlpWorkspace, NnError};
 
 /// Value of the `format` metadata entry of a learner checkpoint.
@@ -400,11 +401,98 @@ enum Part {
     Actor,
 }
 
-/// Locks a chunk. A lock is poisoned only by a panic in an update, which the learner's owner
-/// has seen already (the thread that started that update panicked too).
-fn lock(chunk: &Mutex<Chunk>) -> MutexGuard<'_, Chunk> {
+/// The network an optimiser step moves.
+#[derive(Debug, Clone, Copy)]
+enum Net {
+    Actor,
+    Critic,
+}
+
+impl Chunk {
+    /// The chunk's gradient of `net`.
+    fn grads(&self, net: Net) -> &MlpGrads {
+        match net {
+            Net::Actor => &self.actor_grads,
+            Net::Critic => &self.critic_grads,
+        }
+    }
+}
+
+/// One parameter tensor's part of an optimiser step, moved out of the learner to the thread
+/// that takes it (a worker, or the learner's own) and put back after: the tensor, its summed
+/// gradient, its Adam moments and the transpose the learner keeps of it. Moving the vectors
+/// lets the threads change disjoint tensors without sharing the networks mutably.
+#[derive(Debug, Default)]
+struct StepSlot {
+    /// The tensor's index, in the order of [`Mlp::tensors`].
+    index: usize,
+    /// `(out, inp)` of a weight matrix whose transpose is kept ([`Mlp::transposed_shape`]).
+    transposed: Option<(usize, usize)>,
+    param: Vec<f32>,
+    grad: Vec<f32>,
+    m: Vec<f32>,
+    v: Vec<f32>,
+    wt: Vec<f32>,
+}
+
+impl StepSlot {
+    /// Sums the tensor's gradient over the chunks' `grads` in chunk order (each element the same
+    /// sum whichever thread does it), takes the Adam step with `sizes` and refreshes the
+    /// transpose.
+    fn run<'a>(&mut self, sizes: StepSizes, grads: impl Iterator<Item = &'a MlpGrads>) {
+        for (k, chunk) in grads.enumerate() {
+            let g = chunk.tensor(self.index);
+            if k == 0 {
+                self.grad.copy_from_slice(g);
+            } else {
+                add_assign(&mut self.grad, g);
+            }
+        }
+        sizes.apply(&mut self.param, &self.grad, &mut self.m, &mut self.v);
+        if let Some(shape) = self.transposed {
+            transpose_weights(&self.param, shape, &mut self.wt);
+        }
+    }
+
+    /// Swaps the slot's vectors with tensor `self.index`'s in the learner: moves them out of an
+    /// empty slot, and back from a filled one.
+    fn swap(&mut self, mlp: &mut Mlp, grads: &mut MlpGrads, opt: &mut Adam, t: &mut MlpTransposed) {
+        let i = self.index;
+        std::mem::swap(&mut self.param, mlp.tensor_vec_mut(i));
+        std::mem::swap(&mut self.grad, grads.tensor_vec_mut(i));
+        let (m, v) = opt.moments_mut(i);
+        std::mem::swap(&mut self.m, m);
+        std::mem::swap(&mut self.v, v);
+        if self.transposed.is_some() {
+            std::mem::swap(&mut self.wt, t.tensor_vec_mut(i));
+        }
+    }
+}
+
+/// One thread's share of an optimiser step of `net`: runs `slots` on the gradients of `chunks`.
+/// Each chunk is locked once, for reading, so the threads of a step read the chunks at the same
+/// time instead of taking turns.
+fn run_share(slots: &mut [StepSlot], net: Net, sizes: StepSizes, chunks: &[RwLock<Chunk>]) {
+    let guards: [Option<RwLockReadGuard<'_, Chunk>>; GRADIENT_CHUNKS] =
+        std::array::from_fn(|k| chunks.get(k).map(read));
+    for slot in slots {
+        slot.run(sizes, guards.iter().flatten().map(|chunk| chunk.grads(net)));
+    }
+}
+
+/// Locks a chunk to change it: each chunk of a part goes to one thread. A lock is poisoned
+/// only by a panic in an update, which the learner's owner has seen already (the thread that
+/// started that update panicked too).
+fn write(chunk: &RwLock<Chunk>) -> RwLockWriteGuard<'_, Chunk> {
     chunk
-        .lock()
+        .write()
+        .expect("learner: a chunk was left by a panicked update")
+}
+
+/// Locks a chunk to read its results, beside other readers.
+fn read(chunk: &RwLock<Chunk>) -> RwLockReadGuard<'_, Chunk> {
+    chunk
+        .read()
         .expect("learner: a chunk was left by a panicked update")
 }
 
@@ -538,11 +626,22 @@ impl Model {
 }
 
 /// A part of an update for a worker thread: chunks `chunks` of `of`.
-struct Job {
-    part: Part,
-    model: Arc<Model>,
-    chunks: Range<usize>,
-    of: usize,
+enum Job {
+    /// `part` of an update on the run `chunks` of its `of` chunks.
+    Chunks {
+        part: Part,
+        model: Arc<Model>,
+        chunks: Range<usize>,
+        of: usize,
+    },
+    /// The optimiser step of `net` on the tensors of `slots`, from the first `of` chunks'
+    /// gradients; the slots are sent back.
+    Step {
+        net: Net,
+        sizes: StepSizes,
+        slots: Vec<StepSlot>,
+        of: usize,
+    },
 }
 
 /// How long a thread of a multi-threaded update waits for its counterpart by spinning before it
@@ -576,7 +675,8 @@ fn recv_spinning<T>(rx: &Receiver<T>) -> Result<T, RecvError> {
 /// A worker thread of a level's learner, waiting for jobs.
 struct Worker {
     jobs: SyncSender<Job>,
-    done: Receiver<()>,
+    /// A job is done: the slots of a step, or none.
+    done: Receiver<Vec<StepSlot>>,
     thread: JoinHandle<()>,
 }
 
@@ -587,7 +687,7 @@ struct Pool {
 }
 
 impl Pool {
-    fn new(workers: usize, chunks: &Arc<[Mutex<Chunk>]>) -> Self {
+    fn new(workers: usize, chunks: &Arc<[RwLock<Chunk>]>) -> Self {
         let workers = (0..workers)
             .map(|_| {
                 let (jobs, job_rx) = mpsc::sync_channel::<Job>(1);
@@ -597,13 +697,31 @@ impl Pool {
                     .name("learner-worker".into())
                     .spawn(move || {
                         while let Ok(job) = recv_spinning(&job_rx) {
-                            for k in job.chunks.clone() {
-                                job.model
-                                    .run_chunk(job.part, &mut lock(&chunks[k]), k, job.of);
-                            }
-                            // The model is released before the learner hears the job is done.
-                            drop(job);
-                            if done_tx.send(()).is_err() {
+                            let back = match job {
+                                Job::Chunks {
+                                    part,
+                                    model,
+                                    chunks: run,
+                                    of,
+                                } => {
+                                    for k in run {
+                                        model.run_chunk(part, &mut write(&chunks[k]), k, of);
+                                    }
+                                    // The model is released before the learner hears the job
+                                    // is done.
+                                    Vec::new()
+                                }
+                                Job::Step {
+                                    net,
+                                    sizes,
+                                    mut slots,
+                                    of,
+                                } => {
+                                    run_share(&mut slots, net, sizes, &chunks[..of]);
+                                    slots
+                                }
+                            };
+                            if done_tx.send(back).is_err() {
                                 break;
                             }
                         }
@@ -646,31 +764,39 @@ pub struct LevelLearner {
     actor_opt: Adam,
     critic_opt: Adam,
     /// The chunks' buffers; a worker thread locks the chunks it was given.
-    chunks: Arc<[Mutex<Chunk>]>,
+    chunks: Arc<[RwLock<Chunk>]>,
     /// The summed gradients.
     actor_grads: MlpGrads,
     critic_grads: MlpGrads,
+    /// For each thread, the slots of its share of an optimiser step: filled and emptied by
+    /// each step, kept so that steps allocate nothing.
+    step_slots: Vec<Vec<StepSlot>>,
     pool: Option<Pool>,
     /// Where the updates' time went, since the learner was built or the timing reset.
     timing: UpdateTiming,
 }
 
 /// Where a learner's update time went ([`LevelLearner::timing`]), summed over `updates`
-/// updates: the share no second thread can take (everything outside the chunk parts) bounds
-/// what more threads can give, and `waiting` shows how evenly the threads finish.
+/// updates: the share no second thread can take (everything outside the chunk parts and the
+/// optimiser steps) bounds what more threads can give, and `waiting` shows how evenly the
+/// threads finish.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct UpdateTiming {
     /// Updates timed.
     pub updates: u64,
     /// Their whole time.
     pub total: Duration,
-    /// Of `total`, the two chunk parts (critic, then actor): from handing the chunks out to the
-    /// last one done. The rest is serial: copying the minibatch in, summing the chunks'
-    /// gradients, the Adam steps and the target networks' Polyak step.
+    /// Of `total`, the parts shared among the threads: the two chunk parts (critic, then
+    /// actor), from handing the chunks out to the last one done, and the two optimiser steps
+    /// (summing the chunks' gradients, Adam, refreshing the kept transposes), shared by tensor.
+    /// The rest is serial: copying the minibatch in, the chunks' statistics and the target
+    /// networks' Polyak step.
     pub parallel: Duration,
-    /// Of `parallel`, the calling thread idle after its own chunks, waiting for the workers'
+    /// Of `parallel`, the calling thread idle after its own share, waiting for the workers'
     /// (zero on one thread).
     pub waiting: Duration,
+    /// Of `parallel`, the two optimiser steps.
+    pub steps: Duration,
 }
 
 impl UpdateTiming {
@@ -721,10 +847,11 @@ impl LevelLearner {
             actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
             critic_opt: Adam::new(config.critic_lr, lens(critic.mlp())),
             chunks: (0..GRADIENT_CHUNKS)
-                .map(|_| Mutex::new(Chunk::new(&actor, &critic)))
+                .map(|_| RwLock::new(Chunk::new(&actor, &critic)))
                 .collect(),
             actor_grads: MlpGrads::new(actor.mlp()),
             critic_grads: MlpGrads::new(critic.mlp()),
+            step_slots: vec![Vec::new()],
             model: Arc::new(Model {
                 config,
                 actor_t: MlpTransposed::new(actor.mlp()),
@@ -762,6 +889,7 @@ impl LevelLearner {
         if threads != self.threads() {
             self.pool = None;
             self.pool = (threads > 1).then(|| Pool::new(threads - 1, &self.chunks));
+            self.step_slots.resize_with(threads, Vec::new);
         }
     }
 
@@ -821,40 +949,22 @@ impl LevelLearner {
 
         self.run(Part::Critic, chunks);
         let (mut target_sum, mut sq_err_sum, mut q_sum) = (0.0, 0.0, 0.0);
-        for (k, chunk) in self.chunks[..chunks].iter().enumerate() {
-            let chunk = lock(chunk);
-            if k == 0 {
-                self.critic_grads.copy_from(&chunk.critic_grads);
-            } else {
-                self.critic_grads.add(&chunk.critic_grads);
-            }
+        for chunk in &self.chunks[..chunks] {
+            let chunk = read(chunk);
             target_sum += chunk.target_sum;
             sq_err_sum += chunk.sq_err_sum;
             q_sum += chunk.q_sum;
         }
-        let model = exclusive(&mut self.model);
-        let grads = self.critic_grads.tensors();
-        self.critic_opt
-            .step(model.critic.mlp_mut().tensors_mut().zip(grads));
-        model.critic_t.refresh(model.critic.mlp());
+        self.step(Net::Critic, chunks);
 
         self.run(Part::Actor, chunks);
-        let mut policy_q_sum = 0.0;
-        for (k, chunk) in self.chunks[..chunks].iter().enumerate() {
-            let chunk = lock(chunk);
-            if k == 0 {
-                self.actor_grads.copy_from(&chunk.actor_grads);
-            } else {
-                self.actor_grads.add(&chunk.actor_grads);
-            }
-            policy_q_sum += chunk.policy_q_sum;
-        }
-        let model = exclusive(&mut self.model);
-        let grads = self.actor_grads.tensors();
-        self.actor_opt
-            .step(model.actor.mlp_mut().tensors_mut().zip(grads));
-        model.actor_t.refresh(model.actor.mlp());
+        let policy_q_sum: f32 = self.chunks[..chunks]
+            .iter()
+            .map(|chunk| read(chunk).policy_q_sum)
+            .sum();
+        self.step(Net::Actor, chunks);
 
+        let model = exclusive(&mut self.model);
         if let Some(t) = &mut model.targets {
             t.actor.mlp_mut().polyak_toward(model.actor.mlp(), t.tau);
             t.critic.mlp_mut().polyak_toward(model.critic.mlp(), t.tau);
@@ -878,7 +988,7 @@ impl LevelLearner {
         let share = |t: usize| t * chunks / threads..(t + 1) * chunks / threads;
         let helpers = &workers[..threads - 1];
         for (t, worker) in helpers.iter().enumerate() {
-            let job = Job {
+            let job = Job::Chunks {
                 part,
                 model: Arc::clone(&self.model),
                 chunks: share(t + 1),
@@ -891,7 +1001,7 @@ impl LevelLearner {
         }
         for k in share(0) {
             self.model
-                .run_chunk(part, &mut lock(&self.chunks[k]), k, chunks);
+                .run_chunk(part, &mut write(&self.chunks[k]), k, chunks);
         }
         if !helpers.is_empty() {
             let own_done = Instant::now();
@@ -901,6 +1011,87 @@ impl LevelLearner {
             self.timing.waiting += own_done.elapsed();
         }
         self.timing.parallel += start.elapsed();
+    }
+
+    /// The optimiser step of `net` from the gradients of the first `chunks` chunks: summing
+    /// them, the Adam step and refreshing the kept transposes, shared among the threads by
+    /// tensor. Each tensor goes to the thread whose share of the network's parameters holds its
+    /// middle, so the shares are whole tensors of about equal size, the same ones every step.
+    fn step(&mut self, net: Net, chunks: usize) {
+        let start = Instant::now();
+        let model = exclusive(&mut self.model);
+        let (mlp, grads, opt, transposes) = match net {
+            Net::Actor => (
+                model.actor.mlp_mut(),
+                &mut self.actor_grads,
+                &mut self.actor_opt,
+                &mut model.actor_t,
+            ),
+            Net::Critic => (
+                model.critic.mlp_mut(),
+                &mut self.critic_grads,
+                &mut self.critic_opt,
+                &mut model.critic_t,
+            ),
+        };
+        let sizes = opt.begin_step();
+        let threads = self.step_slots.len();
+        let total = mlp.param_count();
+        let mut offset = 0;
+        for index in 0..mlp.tensor_count() {
+            let len = mlp.tensor_vec_mut(index).len();
+            let thread = ((offset + len / 2) * threads / total).min(threads - 1);
+            offset += len;
+            let mut slot = StepSlot {
+                index,
+                transposed: mlp.transposed_shape(index),
+                ..StepSlot::default()
+            };
+            slot.swap(mlp, grads, opt, transposes);
+            self.step_slots[thread].push(slot);
+        }
+
+        let workers = self.pool.as_ref().map_or(&[][..], |p| &p.workers[..]);
+        let (own, shares) = self
+            .step_slots
+            .split_first_mut()
+            .expect("learner: at least one thread steps");
+        // Bit t: share t + 1 went to worker t (at most GRADIENT_CHUNKS threads).
+        let mut sent = 0u32;
+        for (t, (worker, slots)) in workers.iter().zip(shares.iter_mut()).enumerate() {
+            if !slots.is_empty() {
+                let job = Job::Step {
+                    net,
+                    sizes,
+                    slots: std::mem::take(slots),
+                    of: chunks,
+                };
+                worker
+                    .jobs
+                    .send(job)
+                    .expect("learner: a worker thread has stopped");
+                sent |= 1 << t;
+            }
+        }
+        run_share(own, net, sizes, &self.chunks[..chunks]);
+        if sent != 0 {
+            let own_done = Instant::now();
+            for (t, (worker, slots)) in workers.iter().zip(shares.iter_mut()).enumerate() {
+                if sent & (1 << t) != 0 {
+                    *slots =
+                        recv_spinning(&worker.done).expect("learner: a worker thread panicked");
+                }
+            }
+            self.timing.waiting += own_done.elapsed();
+        }
+        for slots in &mut self.step_slots {
+            for mut slot in slots.drain(..) {
+                slot.swap(mlp, grads, opt, transposes);
+            }
+        }
+        let took = start.elapsed();
+        self.timing.parallel += took;
+        self.timing.steps += took;
     }
 
     /// [`update`](Self::update), undone if it diverged: when a statistic is not finite or a

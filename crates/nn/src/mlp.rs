@@ -26,6 +26,17 @@ pub(crate) struct Dense {
     pub b: Vec<f32>,
 }
 
+/// Tensor `i` of `layers` in the order of [`Mlp::tensors`]: layer `i / 2`'s weights for an even
+/// `i`, its biases for an odd one.
+fn tensor_of(layers: &mut [Dense], i: usize) -> &mut Vec<f32> {
+    let layer = &mut layers[i / 2];
+    if i.is_multiple_of(2) {
+        &mut layer.w
+    } else {
+        &mut layer.b
+    }
+}
+
 impl Dense {
     fn zeros(inp: usize, out: usize) -> Self {
         Self {
@@ -279,6 +290,24 @@ impl Mlp {
             .flat_map(|l| [l.w.as_mut_slice(), l.b.as_mut_slice()])
     }
 
+    /// Number of parameter tensors (a weight matrix and a bias vector per layer).
+    pub(crate) fn tensor_count(&self) -> usize {
+        2 * self.layers.len()
+    }
+
+    /// Parameter tensor `i` (in the order of [`Mlp::tensors`]) itself, to be moved out (to
+    /// another thread) and put back with [`std::mem::swap`].
+    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+        tensor_of(&mut self.layers, i)
+    }
+
+    /// `(out, inp)` of tensor `i` if it is the weight matrix of a layer whose transpose
+    /// [`MlpTransposed`] keeps; `None` for biases and single-output layers.
+    pub(crate) fn transposed_shape(&self, i: usize) -> Option<(usize, usize)> {
+        let layer = &self.layers[i / 2];
+        (i.is_multiple_of(2) && layer.out > 1).then_some((layer.out, layer.inp))
+    }
+
     /// Evaluates the network on the `ws.batch()` columns of `ws.input_mut()`; the linear output is
     /// then in `ws.output()`, and `ws` holds what [`Mlp::backward`] needs.
     pub fn forward(&self, ws: &mut MlpWorkspace) {
@@ -495,12 +524,16 @@ impl MlpTransposed {
         debug_assert_eq!(self.layers.len(), mlp.layers.len());
         for (wt, layer) in self.layers.iter_mut().zip(&mlp.layers) {
             if !wt.is_empty() {
-                vectorized(
-                    #[inline(always)]
-                    || transpose(&layer.w, layer.out, layer.inp, wt),
-                );
+                transpose_weights(&layer.w, (layer.out, layer.inp), wt);
             }
         }
+    }
+
+    /// The kept transpose of the weights of parameter tensor `i` (in the order of
+    /// [`Mlp::tensors`]; see [`Mlp::transposed_shape`]) itself, to be moved out and put back.
+    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+        debug_assert_eq!(i % 2, 0, "only weights have transposes");
+        &mut self.layers[i / 2]
     }
 
     /// Layer `l`'s `W^T`, if it is kept.
@@ -514,6 +547,14 @@ impl MlpTransposed {
         let now = Self::new(mlp);
         self.layers.iter().map(bits).eq(now.layers.iter().map(bits))
     }
+}
+
+/// Writes `W^T` of the `(out, inp)` weights `w` into `wt`, as [`MlpTransposed`] keeps it.
+pub(crate) fn transpose_weights(w: &[f32], (out, inp): (usize, usize), wt: &mut [f32]) {
+    vectorized(
+        #[inline(always)]
+        || transpose(w, out, inp, wt),
+    );
 }
 
 /// Parameter gradients of an [`Mlp`], shaped like it.
@@ -541,32 +582,41 @@ impl MlpGrads {
             .flat_map(|l| [l.w.as_slice(), l.b.as_slice()])
     }
 
-    fn tensors_mut(&mut self) -> impl Iterator<Item = &mut [f32]> {
-        self.layers
-            .iter_mut()
-            .flat_map(|l| [l.w.as_mut_slice(), l.b.as_mut_slice()])
+    /// Gradient tensor `i` (in the order of [`Mlp::tensors`]).
+    pub(crate) fn tensor(&self, i: usize) -> &[f32] {
+        let layer = &self.layers[i / 2];
+        if i.is_multiple_of(2) {
+            &layer.w
+        } else {
+            &layer.b
+        }
     }
 
-    /// `self <- other` (gradients of the same network).
-    pub(crate) fn copy_from(&mut self, other: &MlpGrads) {
-        for (t, o) in self.tensors_mut().zip(other.tensors()) {
-            t.copy_from_slice(o);
-        }
+    /// Gradient tensor `i` itself, to be moved out and put back.
+    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+        tensor_of(&mut self.layers, i)
     }
 
     /// `self <- self + other`, element by element (gradients of the same network).
+    #[cfg(test)]
     pub(crate) fn add(&mut self, other: &MlpGrads) {
-        for (t, o) in self.tensors_mut().zip(other.tensors()) {
-            vectorized(
-                #[inline(always)]
-                || {
-                    for (t, o) in t.iter_mut().zip(o) {
-                        *t += o;
-                    }
-                },
-            );
+        for i in 0..2 * self.layers.len() {
+            add_assign(tensor_of(&mut self.layers, i), other.tensor(i));
         }
     }
+}
+
+/// `t <- t + o`, element by element.
+pub(crate) fn add_assign(t: &mut [f32], o: &[f32]) {
+    debug_assert_eq!(t.len(), o.len());
+    vectorized(
+        #[inline(always)]
+        || {
+            for (t, o) in t.iter_mut().zip(o) {
+                *t += o;
+            }
+        },
+    );
 }
 
 /// Buffers for evaluating and differentiating one [`Mlp`] on a batch. They are sized on the first

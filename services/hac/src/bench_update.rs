@@ -50,13 +50,16 @@ pub struct ThreadsRow {
     /// summed GFLOP/s over one copy's alone (measured just before). The update's `speedup`
     /// cannot beat it by more than the machine's drift.
     pub sgemm_scaling: f64,
-    /// Microseconds per update outside the chunk parts, which no second thread shares (the
-    /// minibatch copied in, the chunk gradients summed, the Adam steps, the target networks'
-    /// Polyak step): with `ms_per_update` at one thread, Amdahl's bound on more threads.
+    /// Microseconds per update outside the parts the threads share, which no second thread
+    /// takes (the minibatch copied in, the chunks' statistics, the target networks' Polyak
+    /// step): with `ms_per_update` at one thread, Amdahl's bound on more threads.
     pub serial_us: f64,
-    /// Microseconds per update the calling thread waits for the workers after its own chunks
+    /// Microseconds per update the calling thread waits for the workers after its own share
     /// (0 on one thread): threads that finish unevenly, or cores that slow each other down.
     pub waiting_us: f64,
+    /// Microseconds per update in the two optimiser steps (the chunk gradients summed, Adam,
+    /// the kept transposes refreshed), which the threads share tensor by tensor.
+    pub steps_us: f64,
 }
 
 /// `hac bench update` result.
@@ -207,6 +210,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             sgemm_scaling,
             serial_us: per_update_us(timing.serial()),
             waiting_us: per_update_us(timing.waiting),
+            steps_us: per_update_us(timing.steps),
         });
     }
     Ok(UpdateReport {
@@ -254,12 +258,12 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.cores
     );
     println!(
-        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us |"
+        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us | steps us |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for row in &r.rows {
         println!(
-            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} |",
+            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} | {:.0} |",
             row.threads,
             row.ms_per_update,
             1e3 / row.ms_per_update,
@@ -268,15 +272,18 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
             row.speedup,
             row.sgemm_scaling,
             row.serial_us,
-            row.waiting_us
+            row.waiting_us,
+            row.steps_us
         );
     }
     println!(
         "(sgemm copies at once: that many independent single-core sgemm runs at the same time, \
          their summed rate over one alone: what the cores give together, the ceiling of the \
-         speedup; serial: per update, the part no second thread shares (minibatch copy, gradient \
-         sums, Adam and Polyak steps); waiting: per update, the calling thread idle after its own \
-         chunks until the workers finish theirs)"
+         speedup; serial: per update, the part no second thread shares (minibatch copy, the \
+         chunks' statistics, Polyak steps); waiting: per update, the calling thread idle after \
+         its own share of the chunks and of the optimiser steps until the workers finish theirs; \
+         steps: per update, the two optimiser steps (gradient sums, Adam, transposes), which the \
+         threads share by tensor)"
     );
     Ok(())
 }
