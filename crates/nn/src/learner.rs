@@ -426,12 +426,13 @@ impl Chunk {
 struct StepSlot {
     /// The tensor's index, in the order of [`Mlp::tensors`].
     index: usize,
-    /// `(out, inp)` of a weight matrix whose transpose is kept ([`Mlp::transposed_shape`]).
-    transposed: Option<(usize, usize)>,
+    /// `(out, inp)` of a weight matrix; `None` for a bias vector.
+    shape: Option<(usize, usize)>,
     param: Vec<f32>,
     grad: Vec<f32>,
     m: Vec<f32>,
     v: Vec<f32>,
+    /// The kept transpose of a weight matrix; empty where [`MlpTransposed`] keeps none.
     wt: Vec<f32>,
 }
 
@@ -449,7 +450,7 @@ impl StepSlot {
             }
         }
         sizes.apply(&mut self.param, &self.grad, &mut self.m, &mut self.v);
-        if let Some(shape) = self.transposed {
+        if let Some(shape) = self.shape.filter(|_| !self.wt.is_empty()) {
             transpose_weights(&self.param, shape, &mut self.wt);
         }
     }
@@ -463,7 +464,7 @@ impl StepSlot {
         let (m, v) = opt.moments_mut(i);
         std::mem::swap(&mut self.m, m);
         std::mem::swap(&mut self.v, v);
-        if self.transposed.is_some() {
+        if self.shape.is_some() {
             std::mem::swap(&mut self.wt, t.tensor_vec_mut(i));
         }
     }
@@ -1039,12 +1040,12 @@ impl LevelLearner {
         let total = mlp.param_count();
         let mut offset = 0;
         for index in 0..mlp.tensor_count() {
-            let len = mlp.tensor_vec_mut(index).len();
+            let len = mlp.tensors().nth(index).map_or(0, <[f32]>::len);
             let thread = ((offset + len / 2) * threads / total).min(threads - 1);
             offset += len;
             let mut slot = StepSlot {
                 index,
-                transposed: mlp.transposed_shape(index),
+                shape: mlp.weight_shape(index),
                 ..StepSlot::default()
             };
             slot.swap(mlp, grads, opt, transposes);
@@ -1056,31 +1057,25 @@ impl LevelLearner {
             .step_slots
             .split_first_mut()
             .expect("learner: at least one thread steps");
-        // Bit t: share t + 1 went to worker t (at most GRADIENT_CHUNKS threads).
-        let mut sent = 0u32;
-        for (t, (worker, slots)) in workers.iter().zip(shares.iter_mut()).enumerate() {
-            if !slots.is_empty() {
-                let job = Job::Step {
-                    net,
-                    sizes,
-                    slots: std::mem::take(slots),
-                    of: chunks,
-                };
-                worker
-                    .jobs
-                    .send(job)
-                    .expect("learner: a worker thread has stopped");
-                sent |= 1 << t;
-            }
+        // Every worker gets its share, empty or not (with more threads than tensors), and sends
+        // it back.
+        for (worker, slots) in workers.iter().zip(shares.iter_mut()) {
+            let job = Job::Step {
+                net,
+                sizes,
+                slots: std::mem::take(slots),
+                of: chunks,
+            };
+            worker
+                .jobs
+                .send(job)
+                .expect("learner: a worker thread has stopped");
         }
         run_share(own, net, sizes, &self.chunks[..chunks]);
-        if sent != 0 {
+        if !workers.is_empty() {
             let own_done = Instant::now();
-            for (t, (worker, slots)) in workers.iter().zip(shares.iter_mut()).enumerate() {
-                if sent & (1 << t) != 0 {
-                    *slots =
-                        recv_spinning(&worker.done).expect("learner: a worker thread panicked");
-                }
+            for (worker, slots) in workers.iter().zip(shares.iter_mut()) {
+                *slots = recv_spinning(&worker.done).expect("learner: a worker thread panicked");
             }
             self.timing.waiting += own_done.elapsed();
         }

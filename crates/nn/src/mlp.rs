@@ -301,11 +301,10 @@ impl Mlp {
         tensor_of(&mut self.layers, i)
     }
 
-    /// `(out, inp)` of tensor `i` if it is the weight matrix of a layer whose transpose
-    /// [`MlpTransposed`] keeps; `None` for biases and single-output layers.
-    pub(crate) fn transposed_shape(&self, i: usize) -> Option<(usize, usize)> {
+    /// `(out, inp)` of tensor `i` if it is a weight matrix; `None` for a bias vector.
+    pub(crate) fn weight_shape(&self, i: usize) -> Option<(usize, usize)> {
         let layer = &self.layers[i / 2];
-        (i.is_multiple_of(2) && layer.out > 1).then_some((layer.out, layer.inp))
+        i.is_multiple_of(2).then_some((layer.out, layer.inp))
     }
 
     /// Evaluates the network on the `ws.batch()` columns of `ws.input_mut()`; the linear output is
@@ -529,8 +528,8 @@ impl MlpTransposed {
         }
     }
 
-    /// The kept transpose of the weights of parameter tensor `i` (in the order of
-    /// [`Mlp::tensors`]; see [`Mlp::transposed_shape`]) itself, to be moved out and put back.
+    /// The kept transpose of weight tensor `i` (in the order of [`Mlp::tensors`]) itself, to be
+    /// moved out and put back: empty where none is kept.
     pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
         debug_assert_eq!(i % 2, 0, "only weights have transposes");
         &mut self.layers[i / 2]
