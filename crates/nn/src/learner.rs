@@ -1040,15 +1040,15 @@ impl LevelLearner {
         let total = mlp.param_count();
         let mut offset = 0;
         for index in 0..mlp.tensor_count() {
-            let len = mlp.tensors().nth(index).map_or(0, <[f32]>::len);
-            let thread = ((offset + len / 2) * threads / total).min(threads - 1);
-            offset += len;
             let mut slot = StepSlot {
                 index,
                 shape: mlp.weight_shape(index),
                 ..StepSlot::default()
             };
             slot.swap(mlp, grads, opt, transposes);
+            let len = slot.param.len();
+            let thread = ((offset + len / 2) * threads / total).min(threads - 1);
+            offset += len;
             self.step_slots[thread].push(slot);
         }
 
