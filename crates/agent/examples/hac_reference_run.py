@@ -32,6 +32,7 @@ seconds) and one line per round on stderr. Not run by any test.
 import argparse
 import builtins
 import importlib.util
+import itertools
 import os
 import re
 import shutil
@@ -80,10 +81,15 @@ import tensorflow.compat.v1 as tf  # noqa: E402
 shim = types.ModuleType("mujoco_py")
 
 
+def load_model_from_path(path):
+    model = mujoco.MjModel.from_xml_path(path)
+    if args.no_contacts:
+        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
+    return model
+
+
 class MjSim:
     def __init__(self, model):
-        if args.no_contacts:
-            model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
         self.model = model
         self.data = mujoco.MjData(model)
 
@@ -95,7 +101,7 @@ def _no_viewer(_sim):
     raise RuntimeError("this driver runs without a viewer")
 
 
-shim.load_model_from_path = mujoco.MjModel.from_xml_path
+shim.load_model_from_path = load_model_from_path
 shim.MjSim = MjSim
 shim.MjViewer = _no_viewer
 sys.modules["mujoco_py"] = shim
@@ -138,8 +144,7 @@ agent, env = design.design_agent_and_env(flags)
 
 start = time.time()
 trained = 0
-round_index = 0
-while True:
+for round_index in itertools.count():
     agent.FLAGS.test = True
     successes = sum(1 for e in range(100) if agent.train(env, e))
     agent.FLAGS.test = False
@@ -150,7 +155,6 @@ while True:
         f"seed {args.seed} round {round_index} after {trained} training episodes: "
         f"{successes}% ({wall:.0f} s)\n"
     )
-    round_index += 1
     if trained >= args.episodes:
         break
     for e in range(agent.other_params["num_exploration_episodes"]):
