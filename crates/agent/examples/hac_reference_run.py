@@ -18,7 +18,12 @@ nothing else:
   rests on a floor plane, which this project's ur5-reacher does not have);
 - seeds: `np.random.seed(SEED)` and `tf.set_random_seed(SEED)` before the agent is built;
 - the reference's own schedule (`run_HAC.py`: a test round of 100 greedy episodes, then 50
-  training episodes, repeated) with a CSV row per test round, its per-step printing silenced.
+  training episodes, repeated) with a CSV row per test round, its per-step printing silenced;
+  with `--train-only`, its training-only schedule (no test rounds);
+- with `--stats-every N`, each level's critic statistics on a replay batch every N training
+  episodes (OUT/stats.csv), read through the reference's own graph;
+- with `--gated-actor`, an experiment on the reference's actor step (its gradients all computed
+  before any is applied).
 
     git clone https://github.com/andrew-j-levy/Hierarchical-Actor-Critc-HAC- /tmp/hac-reference
     pip install tensorflow-cpu mujoco
@@ -27,7 +32,10 @@ nothing else:
         --out runs/reference-ur5-2l-s0
 
 Writes OUT/curve.csv (round, training episodes before the round, greedy successes of 100, wall
-seconds) and one line per round on stderr. Not run by any test.
+seconds) and one line per round on stderr; with `--stats-every`, OUT/stats.csv (training
+episodes, level, the critic's mean Q at a replay batch's actions, the actor's loss, and the
+shares of each at exactly -H). The statistics draw their batch from the reference's random
+stream, so a run with them is another run of its seed. Not run by any test.
 """
 import argparse
 import builtins
@@ -50,6 +58,25 @@ ap.add_argument(
     "--no-contacts",
     action="store_true",
     help="turn MuJoCo's contacts off (the UR5 model's arm then falls through its floor)",
+)
+ap.add_argument(
+    "--train-only",
+    action="store_true",
+    help="no test rounds: train --episodes episodes (the reference's own --train_only schedule)",
+)
+ap.add_argument(
+    "--stats-every",
+    type=int,
+    default=0,
+    metavar="N",
+    help="every N training episodes, write each level's critic statistics on a replay batch to "
+    "stats.csv",
+)
+ap.add_argument(
+    "--gated-actor",
+    action="store_true",
+    help="an experiment: every level's actor step computes all its gradients before it applies "
+    "any (the reference's step may apply a layer's update before the layers below have read it)",
 )
 args = ap.parse_args()
 code = os.path.abspath(args.code)
@@ -137,13 +164,67 @@ spec.loader.exec_module(design)
 flags = types.SimpleNamespace(
     retrain=True, test=False, show=False, train_only=False, verbose=False
 )
-curve = open("curve.csv", "w")
-curve.write("round,train_episodes,successes_of_100,wall_s\n")
 builtins.print = lambda *a, **kw: None
 agent, env = design.design_agent_and_env(flags)
 
+if args.gated_actor:
+    # The reference's actor step passes `tf.gradients` straight to `apply_gradients`, so within
+    # its one `session.run` the Adam update of a layer may run before the backward pass through
+    # that layer has read its weights. Passing the gradients through `tf.tuple` first makes
+    # every update wait for all of them (a new Adam per actor, its slots initialised here).
+    with agent.sess.graph.as_default():
+        known = {v.name for v in tf.global_variables()}
+        for i, layer in enumerate(agent.layers):
+            actor = layer.actor
+            adam = tf.train.AdamOptimizer(actor.learning_rate, name=f"GatedAdam{i}")
+            actor.train = adam.apply_gradients(zip(tf.tuple(actor.policy_gradient), actor.weights))
+        fresh = [v for v in tf.global_variables() if v.name not in known]
+        agent.sess.run(tf.variables_initializer(fresh))
+
+stats = None
+if args.stats_every > 0:
+    stats = open("stats.csv", "w")
+    stats.write("train_episodes,level,mean_q,actor_loss,saturated,saturated_at_policy\n")
+
+
+def write_stats(episodes):
+    """Each level's critic on one replay batch (the reference's own sampling): its mean Q at the
+    stored actions, the actor's loss (-mean Q at the policy's actions), and the share of those
+    two at exactly -H in float32, where the critic's slope is zero."""
+    for i, layer in enumerate(agent.layers):
+        if layer.replay_buffer.size < layer.batch_size:
+            continue
+        states, actions, _, _, goals, _ = layer.replay_buffer.get_batch()
+        critic = layer.critic
+
+        def q(a):
+            feed = {critic.state_ph: states, critic.goal_ph: goals, critic.action_ph: a}
+            return agent.sess.run(critic.infer, feed_dict=feed)
+
+        stored, policy = q(actions), q(layer.actor.get_action(states, goals))
+        stats.write(
+            f"{episodes},{i},{stored.mean():.5f},{-policy.mean():.5f},"
+            f"{(stored <= critic.q_limit).mean():.4f},{(policy <= critic.q_limit).mean():.4f}\n"
+        )
+    stats.flush()
+
+
+def train(episodes):
+    global trained
+    for e in range(episodes):
+        agent.train(env, e)
+        trained += 1
+        if stats is not None and trained % args.stats_every == 0:
+            write_stats(trained)
+
+
 start = time.time()
 trained = 0
+if args.train_only:
+    train(args.episodes)
+    sys.exit(0)
+curve = open("curve.csv", "w")
+curve.write("round,train_episodes,successes_of_100,wall_s\n")
 for round_index in itertools.count():
     agent.FLAGS.test = True
     successes = sum(1 for e in range(100) if agent.train(env, e))
@@ -157,6 +238,4 @@ for round_index in itertools.count():
     )
     if trained >= args.episodes:
         break
-    for e in range(agent.other_params["num_exploration_episodes"]):
-        agent.train(env, e)
-        trained += 1
+    train(agent.other_params["num_exploration_episodes"])
