@@ -42,11 +42,11 @@ import builtins
 import importlib.util
 import itertools
 import os
-import re
-import shutil
 import sys
 import time
 import types
+
+from reference_models import copy_models
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--code", required=True, help="checkout of the reference implementation")
@@ -85,21 +85,7 @@ os.makedirs(args.out, exist_ok=True)
 os.chdir(args.out)
 
 # The model files, with the two edits newer MuJoCo needs.
-if not os.path.isdir("mujoco_files"):
-    shutil.copytree(os.path.join(code, "mujoco_files"), "mujoco_files")
-    for name in os.listdir("mujoco_files"):
-        if not name.endswith(".xml"):
-            continue
-        path = os.path.join("mujoco_files", name)
-        with open(path) as f:
-            xml = f.read()
-        if '<default class="all">' in xml:
-            xml = xml.replace('<default class="all">', '<default>\n<default class="all">', 1)
-            end = xml.index("</default>")
-            xml = xml[:end] + "</default>\n" + xml[end:]
-        xml = re.sub(r'<size njmax="\d+" nconmax="\d+"\s*/>', "", xml)
-        with open(path, "w") as f:
-            f.write(xml)
+copy_models(code, "mujoco_files")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402

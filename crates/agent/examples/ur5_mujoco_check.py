@@ -10,21 +10,20 @@ physics steps each.
 
     pip install mujoco
     cargo build --release -p hac-cli
-    python3 crates/envs/examples/ur5_mujoco_check.py --code /tmp/hac-reference
+    python3 crates/agent/examples/ur5_mujoco_check.py --code /tmp/hac-reference
 
-The model is copied with the two edits MuJoCo 4 requires and that change no physics (as in
-crates/agent/examples/hac_reference_run.py). Not run by any test.
+The model is copied with the two edits MuJoCo 4 requires and that change no physics
+(`reference_models.py`, as for hac_reference_run.py). Not run by any test.
 """
 import argparse
 import json
 import os
-import re
-import shutil
 import subprocess
 import tempfile
 
 import mujoco
 import numpy as np
+from reference_models import copy_models
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--code", required=True, help="checkout of the reference implementation")
@@ -40,17 +39,8 @@ FRAMES = 15
 
 def load_model():
     files = os.path.join(tempfile.mkdtemp(), "mujoco_files")
-    shutil.copytree(os.path.join(args.code, "mujoco_files"), files)
-    path = os.path.join(files, "ur5.xml")
-    with open(path) as f:
-        xml = f.read()
-    xml = xml.replace('<default class="all">', '<default>\n<default class="all">', 1)
-    end = xml.index("</default>")
-    xml = xml[:end] + "</default>\n" + xml[end:]
-    xml = re.sub(r'<size njmax="\d+" nconmax="\d+"\s*/>', "", xml)
-    with open(path, "w") as f:
-        f.write(xml)
-    model = mujoco.MjModel.from_xml_path(path)
+    copy_models(args.code, files)
+    model = mujoco.MjModel.from_xml_path(os.path.join(files, "ur5.xml"))
     model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     return model
 
