@@ -83,6 +83,11 @@ pub struct AgentConfig {
     /// `Q` as the reference does (`false`), where it rounds to exactly 0 once `Q` reads `-H`.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub exact_critic_slope: bool,
+    /// The actor's `tanh` reads exactly `+-1` from `|x| >= 7.9074` on, as TensorFlow's float
+    /// `tanh` (the reference code's arithmetic) does; `false`: libm's, which rounds to `+-1` only
+    /// from `|x|` of about 9.01, so an output at its bound keeps a gradient of about `5e-7`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub saturating_tanh: bool,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).
     pub episodes_to_store: usize,
     /// Upper bound on any level's replay capacity.
@@ -117,6 +122,7 @@ impl AgentConfig {
             target_tau: None,
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
+            saturating_tanh: false,
             episodes_to_store: 200,
             replay_capacity_max: 10_000_000,
             exploration_episodes: 50,

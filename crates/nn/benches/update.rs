@@ -35,6 +35,7 @@ fn config_of(dims: LevelDims) -> LearnerConfig {
         target_tau: None,
         actor_preactivation_l2: 0.0,
         exact_critic_slope: false,
+        saturating_tanh: false,
     }
 }
 

@@ -203,6 +203,7 @@ fn main() -> Result<()> {
         target_tau: reference.target_tau,
         actor_preactivation_l2: reference.actor_preactivation_l2,
         exact_critic_slope: reference.exact_critic_slope,
+        saturating_tanh: reference.saturating_tanh,
     };
     let mut learner = with_weights(&config, &file)?;
     let actor = learner.actor();

@@ -1,5 +1,11 @@
 //! The actor `pi(s, g)`: an MLP on `[state, goal]` whose output is squashed into the level's
 //! action (or subgoal) bounds as `tanh(x) * half_range + offset`, per dimension.
+//!
+//! The `tanh` is libm's, or, with [`ActorNet::with_saturating_tanh`], one that reads exactly
+//! `+-1` from `|x| >= 7.9074` on, as TensorFlow's float `tanh` (Eigen's rational approximation,
+//! clamped; the HAC reference code's arithmetic) does; libm's only rounds to `+-1` from `|x|` of
+//! about 9.01, so between the two an output at its bound keeps a gradient `1 - tanh^2` of about
+//! `5e-7` instead of none. Inside, the two differ by at most `3.5e-7`; this one is libm's there.
 
 use hac_core::{Bounds, LevelDims, Rng};
 
@@ -11,6 +17,20 @@ use crate::{Mlp, MlpGrads, MlpWorkspace, NnError};
 /// Value of the `format` metadata entry of an actor file.
 const FORMAT: &str = "hac-nn/actor";
 
+/// `|x|` from which the saturating `tanh` reads exactly `+-1`: the smallest `f32` at which
+/// TensorFlow's `tanh` (2.21, on x86-64) returns 1.
+pub const TANH_SATURATION: f32 = 7.907_389_6;
+
+/// `tanh(x)`, exactly `+-1` from `|x| >= TANH_SATURATION` on when `saturating`.
+#[inline]
+fn squash(x: f32, saturating: bool) -> f32 {
+    if saturating && x.abs() >= TANH_SATURATION {
+        1.0f32.copysign(x)
+    } else {
+        x.tanh()
+    }
+}
+
 /// A level's deterministic policy. Cheap to clone and `Send`, so rollouts and remote actors can
 /// hold their own copy; [`ActorNet::act`] allocates nothing.
 #[derive(Debug, Clone)]
@@ -19,6 +39,8 @@ pub struct ActorNet {
     mlp: Mlp,
     scale: Vec<f32>,
     offset: Vec<f32>,
+    /// The `tanh` reads exactly `+-1` from `|x| >= TANH_SATURATION` on.
+    saturating_tanh: bool,
     /// Buffers of the single-sample forward pass.
     single: MlpWorkspace,
 }
@@ -53,8 +75,22 @@ impl ActorNet {
             mlp,
             scale,
             offset,
+            saturating_tanh: false,
             single,
         }
+    }
+
+    /// The actor with the saturating `tanh` (exactly `+-1` from `|x| >= 7.9074` on, as in
+    /// TensorFlow) when `on`, libm's otherwise (the default).
+    pub fn with_saturating_tanh(mut self, on: bool) -> Self {
+        self.saturating_tanh = on;
+        self
+    }
+
+    /// Whether the output `tanh` saturates at `|x| >= 7.9074` (see
+    /// [`ActorNet::with_saturating_tanh`]).
+    pub fn saturating_tanh(&self) -> bool {
+        self.saturating_tanh
     }
 
     /// The level's state, goal and action widths.
@@ -100,13 +136,13 @@ impl ActorNet {
             .zip(&self.scale)
             .zip(&self.offset)
         {
-            *o = x.tanh() * s + c;
+            *o = squash(x, self.saturating_tanh) * s + c;
         }
     }
 
     /// The actor as a safetensors file: layers `layers.{l}.weight` (`[out, in]`) and
     /// `layers.{l}.bias`, `output_scale`, `output_offset`; metadata `format`, `state_dim`,
-    /// `goal_dim`.
+    /// `goal_dim`, and `saturating_tanh = true` when it is on (absent: libm's `tanh`).
     pub fn to_safetensors(&self) -> Vec<u8> {
         let mut out = TensorWriter::default();
         out.meta("format".into(), FORMAT);
@@ -136,6 +172,9 @@ impl ActorNet {
         );
         out.meta(format!("{prefix}state_dim"), self.dims.state);
         out.meta(format!("{prefix}goal_dim"), self.dims.goal);
+        if self.saturating_tanh {
+            out.meta(format!("{prefix}saturating_tanh"), true);
+        }
     }
 
     pub(crate) fn read(prefix: &str, file: &TensorReader<'_>) -> Result<Self, NnError> {
@@ -157,7 +196,13 @@ impl ActorNet {
             goal,
             action,
         };
-        Ok(Self::from_parts(dims, mlp, scale, offset))
+        let saturating_key = format!("{prefix}saturating_tanh");
+        let saturating = if file.metadata().contains_key(&saturating_key) {
+            file.meta(&saturating_key)?
+        } else {
+            false
+        };
+        Ok(Self::from_parts(dims, mlp, scale, offset).with_saturating_tanh(saturating))
     }
 
     pub(crate) fn mlp_mut(&mut self) -> &mut Mlp {
@@ -175,8 +220,9 @@ impl ActorNet {
     /// [`ActorNet::write_actions`] and [`ActorNet::backward_batch`] use.
     pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace) {
         self.mlp.forward(ws);
+        let saturating = self.saturating_tanh;
         for v in ws.output_mut() {
-            *v = v.tanh();
+            *v = squash(*v, saturating);
         }
     }
 
@@ -187,8 +233,9 @@ impl ActorNet {
         self.mlp.forward(ws);
         pre.clear();
         pre.extend_from_slice(ws.output());
+        let saturating = self.saturating_tanh;
         for v in ws.output_mut() {
-            *v = v.tanh();
+            *v = squash(*v, saturating);
         }
     }
 
@@ -382,6 +429,100 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn the_saturating_tanh_reads_exactly_one_from_its_edge_on() {
+        assert_eq!(TANH_SATURATION.to_bits(), 0x40fd_0956, "7.9073896408081055");
+        let below = f32::from_bits(TANH_SATURATION.to_bits() - 1);
+        // libm's tanh is still below 1 from the edge up to about 9.01: what the switch changes.
+        for x in [below, TANH_SATURATION, 8.0, 8.5, 9.0] {
+            assert!(x.tanh() < 1.0, "libm tanh({x}) = {}", x.tanh());
+            assert_eq!(squash(x, false), x.tanh());
+            assert_eq!(squash(-x, false), (-x).tanh());
+        }
+        assert_eq!(9.5f32.tanh(), 1.0);
+        assert_eq!(squash(below, true), below.tanh(), "libm's below the edge");
+        assert!(squash(below, true) < 1.0);
+        for x in [TANH_SATURATION, 8.0, 8.5, 9.0, 1e30, f32::INFINITY] {
+            assert_eq!(squash(x, true), 1.0, "at {x}");
+            assert_eq!(squash(-x, true), -1.0, "at -{x}");
+        }
+        assert!(squash(f32::NAN, true).is_nan());
+    }
+
+    /// An actor whose pre-activations are `pre` for every input: zero output weights.
+    fn constant_actor(pre: f32, saturating: bool) -> ActorNet {
+        let mut actor = actor(20).with_saturating_tanh(saturating);
+        let mut tensors: Vec<&mut [f32]> = actor.mlp_mut().tensors_mut().collect();
+        let n = tensors.len();
+        tensors[n - 2].fill(0.0);
+        tensors[n - 1].fill(pre);
+        actor
+    }
+
+    #[test]
+    fn a_saturating_actor_sits_on_its_bounds_with_no_gradient() {
+        let (states, goals) = ([0.1, 0.2, 0.3], [0.4, 0.5, 0.6]);
+        let upper = [0.5, 3.0];
+        for (saturating, on_bounds) in [(true, true), (false, false)] {
+            let mut actor = constant_actor(8.5, saturating);
+            let mut out = [0.0; 2];
+            actor.act(&states, &goals, &mut out);
+            assert_eq!(
+                out == upper,
+                on_bounds,
+                "act {out:?}, saturating {saturating}"
+            );
+            let mut ws = MlpWorkspace::new(actor.mlp(), 1);
+            assert_eq!(batch_actions(&actor, &mut ws, &states, &goals), out);
+            ws.output_grad_mut().fill(1.0);
+            let mut grads = MlpGrads::new(actor.mlp());
+            actor.backward_batch(&mut ws, &mut grads, None, None);
+            let output_bias = grads.tensors().last().unwrap();
+            assert_eq!(
+                output_bias.iter().all(|&g| g == 0.0),
+                saturating,
+                "output bias gradient {output_bias:?}, saturating {saturating}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_saturating_tanh_travels_with_the_file() {
+        let plain = actor(21).to_safetensors();
+        let (_, header) = safetensors::SafeTensors::read_metadata(&plain).unwrap();
+        assert!(
+            !header
+                .metadata()
+                .as_ref()
+                .unwrap()
+                .contains_key("saturating_tanh")
+        );
+        assert!(
+            !ActorNet::from_safetensors(&plain)
+                .unwrap()
+                .saturating_tanh()
+        );
+
+        let mut a = constant_actor(8.5, true);
+        let bytes = a.to_safetensors();
+        let mut b = ActorNet::from_safetensors(&bytes).unwrap();
+        assert!(b.saturating_tanh());
+        assert_eq!(b.to_safetensors(), bytes);
+        let (mut out_a, mut out_b) = ([0.0; 2], [0.0; 2]);
+        a.act(&[0.0; 3], &[0.0; 3], &mut out_a);
+        b.act(&[0.0; 3], &[0.0; 3], &mut out_b);
+        assert_eq!(out_a.map(f32::to_bits), out_b.map(f32::to_bits));
+
+        let mut file = TensorWriter::default();
+        file.meta("format".into(), FORMAT);
+        a.write("", &mut file);
+        file.meta("saturating_tanh".into(), "yes");
+        assert!(matches!(
+            ActorNet::from_safetensors(&file.finish()),
+            Err(NnError::Metadata { key, .. }) if key == "saturating_tanh"
+        ));
     }
 
     #[test]

@@ -43,6 +43,9 @@ pub struct LearnerConfig {
     /// The critic's slope from its pre-sigmoid output (see [`CriticNet`]); `false` is the
     /// reference's rounding.
     pub exact_critic_slope: bool,
+    /// The actor's `tanh` reads exactly `+-1` from `|x| >= 7.9074` on (see
+    /// [`ActorNet::with_saturating_tanh`]).
+    pub saturating_tanh: bool,
 }
 
 impl LearnerConfig {
@@ -59,6 +62,7 @@ impl LearnerConfig {
             target_tau: agent.target_tau,
             actor_preactivation_l2: agent.actor_preactivation_l2,
             exact_critic_slope: agent.exact_critic_slope,
+            saturating_tanh: agent.saturating_tanh,
         }
     }
 
@@ -832,7 +836,8 @@ impl LevelLearner {
     ///
     /// Panics if the bounds do not match `dims.action`, a width is zero, or `horizon <= 0.067`.
     pub fn new(config: LearnerConfig, rng: &mut Rng) -> Self {
-        let actor = ActorNet::new(config.dims, &config.action_bounds, &config.hidden, rng);
+        let actor = ActorNet::new(config.dims, &config.action_bounds, &config.hidden, rng)
+            .with_saturating_tanh(config.saturating_tanh);
         let critic = CriticNet::new(config.dims, config.horizon, &config.hidden, rng);
         Self::assemble(config, actor, critic)
     }
@@ -1190,11 +1195,12 @@ impl LevelLearner {
 
     /// Restores a learner saved by [`LevelLearner::to_safetensors`]. The file's networks must
     /// have the architecture, bounds and horizon that `config` describes; its hyperparameters
-    /// (learning rates, gamma, tau) come from `config`.
+    /// (learning rates, gamma, tau, the actor's `tanh`) come from `config`.
     pub fn from_safetensors(config: LearnerConfig, bytes: &[u8]) -> Result<Self, NnError> {
         let file = TensorReader::new(bytes)?;
         file.expect_format(FORMAT)?;
-        let actor = ActorNet::read("actor.", &file)?;
+        let saturating = config.saturating_tanh;
+        let actor = ActorNet::read("actor.", &file)?.with_saturating_tanh(saturating);
         let critic = CriticNet::read("critic.", &file)?;
         check_matches(&config, &actor, &critic)?;
         let mut learner = Self::assemble(config, actor, critic);
@@ -1202,7 +1208,7 @@ impl LevelLearner {
         learner.critic_opt.read("critic_adam.", &file)?;
         let model = exclusive(&mut learner.model);
         if let Some(t) = &mut model.targets {
-            t.actor = ActorNet::read("target_actor.", &file)?;
+            t.actor = ActorNet::read("target_actor.", &file)?.with_saturating_tanh(saturating);
             t.critic = CriticNet::read("target_critic.", &file)?;
             check_matches(&model.config, &t.actor, &t.critic)?;
         }
@@ -1319,6 +1325,7 @@ mod tests {
             target_tau,
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
+            saturating_tanh: false,
         }
     }
 
@@ -1645,6 +1652,7 @@ mod tests {
         let with_everything = LearnerConfig {
             actor_preactivation_l2: 1e-3,
             exact_critic_slope: true,
+            saturating_tanh: true,
             ..config(Some(0.05))
         };
         for cfg in [config(None), with_everything] {

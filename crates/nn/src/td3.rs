@@ -930,6 +930,7 @@ mod tests {
                 target_tau,
                 actor_preactivation_l2: 0.0,
                 exact_critic_slope: false,
+                saturating_tanh: false,
             },
             rng,
         )
