@@ -1648,6 +1648,29 @@ mod tests {
     }
 
     #[test]
+    fn the_saturating_tanh_reaches_the_actor_its_weights_and_a_restore() {
+        let cfg = LearnerConfig {
+            saturating_tanh: true,
+            ..config(Some(0.05))
+        };
+        let learner = LevelLearner::new(cfg.clone(), &mut Rng::seed_from(1));
+        assert!(learner.actor().saturating_tanh());
+        let published = ActorNet::from_safetensors(&learner.actor().to_safetensors()).unwrap();
+        assert!(published.saturating_tanh());
+        let bytes = learner.to_safetensors();
+        let restored = LevelLearner::from_safetensors(cfg.clone(), &bytes).unwrap();
+        assert!(restored.actor().saturating_tanh());
+        assert_eq!(restored.to_safetensors(), bytes);
+        // On a restore the configuration decides, as for the other hyperparameters.
+        let plain = LearnerConfig {
+            saturating_tanh: false,
+            ..cfg
+        };
+        let restored = LevelLearner::from_safetensors(plain, &bytes).unwrap();
+        assert!(!restored.actor().saturating_tanh());
+    }
+
+    #[test]
     fn weights_are_bit_identical_for_any_thread_count() {
         let with_everything = LearnerConfig {
             actor_preactivation_l2: 1e-3,
