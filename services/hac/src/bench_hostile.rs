@@ -843,10 +843,12 @@ async fn attack(
 }
 
 /// Watches the weights as a registered evaluator; checks every float of every version.
-/// Stops the attack (`finished`) once the learner announces the end of the run; runs while
-/// `watching`.
+/// Says on `registered` once it is registered and watching (from then on the run has an
+/// evaluator, so a trainer's evaluation is refused). Stops the attack (`finished`) once the
+/// learner announces the end of the run; runs while `watching`.
 async fn watch_weights(
     url: String,
+    registered: tokio::sync::oneshot::Sender<()>,
     watching: Arc<AtomicBool>,
     finished: Arc<AtomicBool>,
 ) -> Result<(u64, u64)> {
@@ -865,6 +867,8 @@ async fn watch_weights(
         })
         .await?
         .into_inner();
+    // The receiver is gone only if the bench gave up already.
+    let _ = registered.send(());
     let (mut versions, mut non_finite) = (0u64, 0u64);
     while watching.load(Ordering::Relaxed) {
         let next = tokio::time::timeout(Duration::from_millis(500), stream.message()).await;
@@ -1078,11 +1082,27 @@ pub fn run(bench: &HostileBench) -> Result<HostileReport> {
         .build()
         .context("starting the bench runtime")?;
     let tally = Arc::new(Tally::default());
-    let watcher = runtime.spawn(watch_weights(
+    // The watcher is the run's evaluator from the first hostile input on: a trainer's
+    // evaluation is refused only while the run has one (the honest evaluator, in attack mode,
+    // may not have registered yet).
+    let (registered, watcher_ready) = tokio::sync::oneshot::channel();
+    let mut watcher = runtime.spawn(watch_weights(
         url.clone(),
+        registered,
         watching.clone(),
         attack_stop.clone(),
     ));
+    runtime.block_on(async {
+        tokio::select! {
+            ready = watcher_ready => {
+                ready.context("the weights watcher stopped before registering")
+            }
+            early = &mut watcher => match early {
+                Ok(Err(e)) => Err(e.context("the weights watcher")),
+                _ => Err(anyhow::anyhow!("the weights watcher stopped before registering")),
+            },
+        }
+    })?;
     let hostile_t0 = Instant::now();
     let clients: Vec<_> = (0..bench.clients)
         .map(|i| {
