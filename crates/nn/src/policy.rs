@@ -9,8 +9,9 @@
 //! `action = tanh(y) * output_scale + output_offset` (within the level's action bounds).
 //!
 //! Metadata, one plain safetensors entry per key (every value a string): `format` =
-//! `hac/policy`, `format_version`, `levels`, `level{i}.state_dim`, `level{i}.goal_dim`, and
-//! whatever the caller adds (`hac export` adds the environment, bounds, thresholds and the
+//! `hac/policy`, `format_version`, `levels`, `level{i}.state_dim`, `level{i}.goal_dim`,
+//! `level{i}.saturating_tanh = true` when that level's `tanh` is exactly `+-1` from `|y| >=
+//! 7.9073896` on (see [`ActorNet::with_saturating_tanh`]), and whatever the caller adds (`hac export` adds the environment, bounds, thresholds and the
 //! weights version; see docs/CHECKPOINTS.md).
 
 use std::collections::BTreeMap;
