@@ -220,6 +220,11 @@ impl ActorNet {
     /// [`ActorNet::write_actions`] and [`ActorNet::backward_batch`] use.
     pub(crate) fn forward_batch(&self, ws: &mut MlpWorkspace) {
         self.mlp.forward(ws);
+        self.squash_output(ws);
+    }
+
+    /// Replaces the pre-activations in `ws.output()` by their `tanh`.
+    fn squash_output(&self, ws: &mut MlpWorkspace) {
         let saturating = self.saturating_tanh;
         for v in ws.output_mut() {
             *v = squash(*v, saturating);
@@ -233,10 +238,7 @@ impl ActorNet {
         self.mlp.forward(ws);
         pre.clear();
         pre.extend_from_slice(ws.output());
-        let saturating = self.saturating_tanh;
-        for v in ws.output_mut() {
-            *v = squash(*v, saturating);
-        }
+        self.squash_output(ws);
     }
 
     /// Writes the actions of the last [`ActorNet::forward_batch`] into rows `row..row + action` of

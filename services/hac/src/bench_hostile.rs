@@ -842,24 +842,23 @@ async fn attack(
     Ok(hostile.account)
 }
 
-/// Watches the weights as a registered evaluator; checks every float of every version.
-/// Says on `registered` once it is registered and watching (from then on the run has an
-/// evaluator, so a trainer's evaluation is refused). Stops the attack (`finished`) once the
-/// learner announces the end of the run; runs while `watching`.
-async fn watch_weights(
-    url: String,
-    registered: tokio::sync::oneshot::Sender<()>,
-    watching: Arc<AtomicBool>,
-    finished: Arc<AtomicBool>,
-) -> Result<(u64, u64)> {
-    let mut client = client(&url).await?;
+/// The watcher's connection (kept open while it watches) and its weights stream.
+type Watch = (
+    pb::learner_client::LearnerClient<tonic::transport::Channel>,
+    tonic::codec::Streaming<pb::Weights>,
+);
+
+/// Registers as an evaluator and opens a weights watch: from then on the run has an evaluator,
+/// so a trainer's evaluation is refused.
+async fn open_watch(url: &str) -> Result<Watch> {
+    let mut client = client(url).await?;
     let id = "hostile-bench-watcher".to_string();
     let incarnation = client
         .register(registration(id.clone(), pb::ActorRole::Evaluator))
         .await?
         .into_inner()
         .incarnation;
-    let mut stream = client
+    let stream = client
         .watch_weights(pb::WatchWeightsRequest {
             actor_id: id,
             incarnation,
@@ -867,8 +866,16 @@ async fn watch_weights(
         })
         .await?
         .into_inner();
-    // The receiver is gone only if the bench gave up already.
-    let _ = registered.send(());
+    Ok((client, stream))
+}
+
+/// Checks every float of every weights version on the watch (see [`open_watch`]). Stops the
+/// attack (`finished`) once the learner announces the end of the run; runs while `watching`.
+async fn watch_weights(
+    (_client, mut stream): Watch,
+    watching: Arc<AtomicBool>,
+    finished: Arc<AtomicBool>,
+) -> Result<(u64, u64)> {
     let (mut versions, mut non_finite) = (0u64, 0u64);
     while watching.load(Ordering::Relaxed) {
         let next = tokio::time::timeout(Duration::from_millis(500), stream.message()).await;
@@ -1085,24 +1092,10 @@ pub fn run(bench: &HostileBench) -> Result<HostileReport> {
     // The watcher is the run's evaluator from the first hostile input on: a trainer's
     // evaluation is refused only while the run has one (the honest evaluator, in attack mode,
     // may not have registered yet).
-    let (registered, watcher_ready) = tokio::sync::oneshot::channel();
-    let mut watcher = runtime.spawn(watch_weights(
-        url.clone(),
-        registered,
-        watching.clone(),
-        attack_stop.clone(),
-    ));
-    runtime.block_on(async {
-        tokio::select! {
-            ready = watcher_ready => {
-                ready.context("the weights watcher stopped before registering")
-            }
-            early = &mut watcher => match early {
-                Ok(Err(e)) => Err(e.context("the weights watcher")),
-                _ => Err(anyhow::anyhow!("the weights watcher stopped before registering")),
-            },
-        }
-    })?;
+    let watch = runtime
+        .block_on(open_watch(&url))
+        .context("the weights watcher")?;
+    let watcher = runtime.spawn(watch_weights(watch, watching.clone(), attack_stop.clone()));
     let hostile_t0 = Instant::now();
     let clients: Vec<_> = (0..bench.clients)
         .map(|i| {
