@@ -15,28 +15,13 @@ Needs only NumPy. `--circle I,J` draws state columns I and J as the cosine and s
 uniform angle (cartpole's `[x, cos q, sin q, xdot, qdot]`: `--circle 1,2`).
 """
 import argparse
-import json
-import struct
 
 import numpy as np
 
+from safetensors_f32 import hac_nn_metadata, read_safetensors
+
 TF_EDGE = 7.9073896  # TensorFlow's float tanh is exactly +-1 from here (saturating_tanh)
 LIBM_EDGE = 9.01  # libm's tanhf rounds to +-1 from about here
-
-
-def read_level(path):
-    raw = open(path, "rb").read()
-    n = struct.unpack("<Q", raw[:8])[0]
-    header = json.loads(raw[8 : 8 + n])
-    meta = dict(kv.split("=", 1) for kv in header.pop("__metadata__")["hac_nn"].split(";"))
-    tensors = {}
-    for name, info in header.items():
-        if info["dtype"] != "F32":
-            raise SystemExit(f"{path}: tensor {name} is {info['dtype']}, expected F32")
-        a, b = info["data_offsets"]
-        data = np.frombuffer(raw[8 + n + a : 8 + n + b], dtype=np.float32)
-        tensors[name] = data.reshape(info["shape"]).astype(np.float64)
-    return tensors, meta
 
 
 def floats(text):
@@ -54,7 +39,9 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args()
 
-    t, meta = read_level(a.weights)
+    tensors, metadata = read_safetensors(a.weights)
+    t = {k: v.astype(np.float64) for k, v in tensors.items()}
+    meta = hac_nn_metadata(metadata)
     rng = np.random.default_rng(a.seed)
     states = rng.uniform(a.state_low, a.state_high, (a.samples, len(a.state_low)))
     if a.circle:

@@ -46,16 +46,16 @@ is built (most of it in TensorFlow and the reference's per-row Python loop). Not
 test.
 """
 import argparse
-import json
 import os
 import shutil
-import struct
 import subprocess
 import sys
 import tempfile
 import types
 
 import numpy as np
+
+from safetensors_f32 import read_safetensors, write_safetensors
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
 BATCH = 1024
@@ -102,40 +102,6 @@ def case_spec(name):
                     scale=ENV.action_bounds, offset=ENV.action_offset)
     return dict(layer=1, state=6, goal=3, action=6,
                 scale=ENV.subgoal_bounds_symmetric, offset=ENV.subgoal_bounds_offset)
-
-
-# --- safetensors, by hand (f32 only) ------------------------------------------------------------
-
-def write_safetensors(path, tensors, metadata):
-    header, blobs, offset = {}, [], 0
-    for name, array in tensors.items():
-        data = np.ascontiguousarray(array, dtype="<f4").tobytes()
-        header[name] = {"dtype": "F32", "shape": list(np.shape(array)),
-                        "data_offsets": [offset, offset + len(data)]}
-        blobs.append(data)
-        offset += len(data)
-    header["__metadata__"] = metadata
-    text = json.dumps(header, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 8)
-    with open(path, "wb") as f:
-        f.write(struct.pack("<Q", len(text)))
-        f.write(text)
-        for data in blobs:
-            f.write(data)
-
-
-def read_safetensors(path):
-    with open(path, "rb") as f:
-        raw = f.read()
-    (n,) = struct.unpack("<Q", raw[:8])
-    header = json.loads(raw[8:8 + n])
-    metadata = header.pop("__metadata__", {})
-    tensors = {}
-    for name, info in header.items():
-        assert info["dtype"] == "F32", (name, info["dtype"])
-        start, end = info["data_offsets"]
-        tensors[name] = np.frombuffer(raw[8 + n + start:8 + n + end], "<f4").reshape(info["shape"])
-    return tensors, metadata
 
 
 # --- inputs -------------------------------------------------------------------------------------
