@@ -2,7 +2,9 @@
 //! (batch 1024, hidden [64, 64, 64]) for pendulum-like levels and for pick-and-place's widest
 //! levels (state 20; level 0 with a 7-wide subgoal and 4 actions, the top level with the 3-wide
 //! end goal proposing 7-wide subgoals), the pendulum-like level on two threads, and one greedy
-//! single-sample action. Target: an update within 2.1 ms on one core of the project's 2-core
+//! single-sample action, and one Adam step over a level's parameters (actor and critic, about
+//! 17,600), with ordinary moments and with a dead unit's (decayed to where the plain formula
+//! produces subnormal floats), against that plain formula. Target: an update within 2.1 ms on one core of the project's 2-core
 //! machine (docs/RESULTS.md); `crates/nn/benches/pytorch_update.py` times the same update in
 //! PyTorch.
 
@@ -122,5 +124,63 @@ fn act(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, update, act);
+/// Adam's plain formula in `f32` (`m`, `v` and the parameter in that order, every product
+/// computed), one step at step count `t`: what `hac_nn::Adam` computed before it skipped the
+/// products whose result would be subnormal, for comparison. It runs at the build's baseline
+/// (SSE2) where `hac_nn::Adam` picks AVX2 or AVX-512 at run time, so compare each with itself
+/// between ordinary and zero gradients.
+fn plain_adam_step(t: u64, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+    let (b1, b2, eps, lr) = (0.9f32, 0.999f32, 1e-8f32, 1e-3f64);
+    let step_size = (lr / (1.0 - f64::from(b1).powf(t as f64))) as f32;
+    let inv_sqrt_bias2 = (1.0 / (1.0 - f64::from(b2).powf(t as f64)).sqrt()) as f32;
+    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+        *m = b1 * *m + (1.0 - b1) * g;
+        *v = b2 * *v + (1.0 - b2) * g * g;
+        *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + eps);
+    }
+}
+
+/// One Adam step over about as many parameters as a pendulum-sized level's actor and critic
+/// together (17,600), `hac_nn::Adam`'s and the plain formula's, after a first gradient and then
+/// gradients of `scale` times it for `warm_steps` steps. With a scale of 0 (a dead unit's
+/// weights) the first moments decay into the subnormal range within 1000 steps, and under the
+/// plain formula stay there (0.9 times a few subnormal units rounds back to the same value).
+fn adam(c: &mut Criterion) {
+    let n = 17_600;
+    let mut group = c.benchmark_group("adam");
+    for (name, scale, warm_steps) in [
+        ("ordinary_gradients", 1.0f32, 10u64),
+        ("gradients_zero_for_1000_steps", 0.0, 1000),
+    ] {
+        let start: Vec<f32> = (0..n).map(|i| ((i % 97) as f32 - 48.0) * 0.01).collect();
+        let first: Vec<f32> = (0..n).map(|i| ((i % 13) as f32 - 6.0) * 1e-3).collect();
+        let g: Vec<f32> = first.iter().map(|x| x * scale).collect();
+
+        let mut p = start.clone();
+        let mut opt = hac_nn::Adam::new(1e-3, [n]);
+        opt.step([(&mut p[..], &first[..])]);
+        for _ in 0..warm_steps {
+            opt.step([(&mut p[..], &g[..])]);
+        }
+        group.bench_function(format!("params17600_{name}"), |b| {
+            b.iter(|| opt.step([(black_box(&mut p[..]), black_box(&g[..]))]))
+        });
+
+        let (mut p, mut m, mut v) = (start, vec![0.0; n], vec![0.0; n]);
+        let mut t = 1;
+        plain_adam_step(t, &mut p, &first, &mut m, &mut v);
+        for _ in 0..warm_steps {
+            t += 1;
+            plain_adam_step(t, &mut p, &g, &mut m, &mut v);
+        }
+        group.bench_function(format!("params17600_{name}_plain_formula"), |b| {
+            b.iter(|| {
+                t += 1;
+                plain_adam_step(t, black_box(&mut p[..]), black_box(&g[..]), &mut m, &mut v)
+            })
+        });
+    }
+}
+
+criterion_group!(benches, update, act, adam);
 criterion_main!(benches);
