@@ -4,8 +4,8 @@
 //! end goal proposing 7-wide subgoals), the pendulum-like level on two threads, and one greedy
 //! single-sample action, and one Adam step over a level's parameters (actor and critic, about
 //! 17,600), with ordinary moments and with a dead unit's (decayed to where the plain formula
-//! produces subnormal floats), against that plain formula. Target: an update within 2.1 ms on one core of the project's 2-core
-//! machine (docs/RESULTS.md); `crates/nn/benches/pytorch_update.py` times the same update in
+//! produces subnormal floats), against that plain formula. Target: an update within 2.1 ms on
+//! one core of the project's 2-core machine (docs/RESULTS.md); `crates/nn/benches/pytorch_update.py` times the same update in
 //! PyTorch.
 
 use std::hint::black_box;
@@ -130,7 +130,8 @@ fn act(c: &mut Criterion) {
 /// (SSE2) where `hac_nn::Adam` picks AVX2 or AVX-512 at run time, so compare each with itself
 /// between ordinary and zero gradients.
 fn plain_adam_step(t: u64, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
-    let (b1, b2, eps, lr) = (0.9f32, 0.999f32, 1e-8f32, 1e-3f64);
+    use hac_nn::adam::{BETA1 as b1, BETA2 as b2, EPSILON as eps};
+    let lr = 1e-3f64;
     let step_size = (lr / (1.0 - f64::from(b1).powf(t as f64))) as f32;
     let inv_sqrt_bias2 = (1.0 / (1.0 - f64::from(b2).powf(t as f64)).sqrt()) as f32;
     for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {

@@ -250,15 +250,13 @@ mod tests {
         assert_eq!(adam.steps(), 2);
     }
 
-    /// The plain formula in `f32`, as the step computed it before it avoided subnormals.
-    fn plain_step(lr: f32, t: u64, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
-        let tf = t as f64;
-        let step_size = (f64::from(lr) / (1.0 - f64::from(BETA1).powf(tf))) as f32;
-        let inv_sqrt_bias2 = (1.0 / (1.0 - f64::from(BETA2).powf(tf)).sqrt()) as f32;
+    /// The plain formula in `f32`, as the step computed it before it avoided subnormals, with the
+    /// step sizes `sizes` (from [`Adam::begin_step`]).
+    fn plain_step(sizes: StepSizes, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
         for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
             *m = BETA1 * *m + (1.0 - BETA1) * g;
             *v = BETA2 * *v + (1.0 - BETA2) * g * g;
-            *p -= step_size * *m / (v.sqrt() * inv_sqrt_bias2 + EPSILON);
+            *p -= sizes.step_size * *m / (v.sqrt() * sizes.inv_sqrt_bias2 + EPSILON);
         }
     }
 
@@ -284,11 +282,14 @@ mod tests {
         let mut adam = Adam::new(lr, [n]);
         let mut p = start.clone();
         let (mut p_plain, mut m_plain, mut v_plain) = (start, vec![0.0f32; n], vec![0.0f32; n]);
+        // Counts the steps of the plain formula, for its step sizes.
+        let mut plain_steps = Adam::new(lr, []);
         let mut saw_subnormal_plain = false;
         for t in 1..=3000u64 {
             let g: Vec<f32> = (0..n).map(|i| grad(t, i)).collect();
             adam.step([(&mut p[..], &g[..])]);
-            plain_step(lr, t, &mut p_plain, &g, &mut m_plain, &mut v_plain);
+            let sizes = plain_steps.begin_step();
+            plain_step(sizes, &mut p_plain, &g, &mut m_plain, &mut v_plain);
             saw_subnormal_plain |= m_plain.iter().chain(&v_plain).any(|x| x.is_subnormal());
             assert_eq!(
                 p, p_plain,
