@@ -84,9 +84,12 @@ pub struct AgentConfig {
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub exact_critic_slope: bool,
     /// The actor's `tanh` reads exactly `+-1` from `|x| >= 7.9074` on, as TensorFlow's float
-    /// `tanh` (the reference code's arithmetic) does; `false`: libm's, which rounds to `+-1` only
-    /// from `|x|` of about 9.01, so an output at its bound keeps a gradient of about `5e-7`.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    /// `tanh` (the reference code's arithmetic) does: the default. `false`: libm's, which rounds
+    /// to `+-1` only from `|x|` of about 9.01, so an output at its bound keeps a gradient of
+    /// about `5e-7`. That was the default until the measurements in docs/RESULTS.md made this
+    /// one; a run's `config.toml` from then has no such key, and reads `false` as it was
+    /// trained. Always written, so a run's file says which `tanh` it used.
+    #[serde(default)]
     pub saturating_tanh: bool,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).
     pub episodes_to_store: usize,
@@ -102,7 +105,8 @@ impl AgentConfig {
     /// The paper's reference hyperparameters for `levels` levels with horizon `horizon`: lambda
     /// 0.3, 20% random actions, noise 0.1 of the half range, 3 replay goals, gamma 0.98, 3 hidden
     /// layers of 64, Adam at 1e-3, batches of 1024, 40 updates per episode, no target networks,
-    /// 200 episodes stored, 50 training episodes then 100 test episodes per round. Environments
+    /// 200 episodes stored, 50 training episodes then 100 test episodes per round, and the
+    /// reference code's float `tanh` (`saturating_tanh`). Environments
     /// start here and override what the task sets differently (docs/ENVIRONMENTS.md).
     pub fn reference(levels: usize, horizon: usize) -> Self {
         Self {
@@ -122,7 +126,7 @@ impl AgentConfig {
             target_tau: None,
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
-            saturating_tanh: false,
+            saturating_tanh: true,
             episodes_to_store: 200,
             replay_capacity_max: 10_000_000,
             exploration_episodes: 50,

@@ -179,6 +179,7 @@ impl Env for MountainCar {
             target_tau: None,
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
+            // Port: PyTorch's float `tanh`, not TensorFlow's (which the HAC paper's code used).
             saturating_tanh: false,
             // Ours: 500 episodes keep level 0 of a 2-level agent under the port's per-level
             // buffer of 5e5 transitions, which is the cap.
