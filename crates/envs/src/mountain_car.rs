@@ -179,7 +179,8 @@ impl Env for MountainCar {
             target_tau: None,
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
-            // Port: PyTorch's float `tanh`, not TensorFlow's (which the HAC paper's code used).
+            // Port: PyTorch's float `tanh`, which rounds to +-1 where libm's does (about 9.01),
+            // not from TensorFlow's 7.9074 (the HAC paper's code).
             saturating_tanh: false,
             // Ours: 500 episodes keep level 0 of a 2-level agent under the port's per-level
             // buffer of 5e5 transitions, which is the cap.
