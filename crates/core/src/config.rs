@@ -86,9 +86,9 @@ pub struct AgentConfig {
     /// The actor's `tanh` reads exactly `+-1` from `|x| >= 7.9074` on, as TensorFlow's float
     /// `tanh` (the reference code's arithmetic) does: the default. `false`: libm's, which rounds
     /// to `+-1` only from `|x|` of about 9.01, so an output at its bound keeps a gradient of
-    /// about `5e-7`. That was the default until the measurements in docs/RESULTS.md made this
-    /// one; a run's `config.toml` from then has no such key, and reads `false` as it was
-    /// trained. Always written, so a run's file says which `tanh` it used.
+    /// about `5e-7`: the default before docs/RESULTS.md's measurements changed it. Always
+    /// written to a run's `config.toml`; a file from before has no such key and reads `false`,
+    /// as that run was trained.
     #[serde(default)]
     pub saturating_tanh: bool,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).

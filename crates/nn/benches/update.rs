@@ -5,8 +5,8 @@
 //! single-sample action, and one Adam step over a level's parameters (actor and critic, about
 //! 17,600), with ordinary moments and with a dead unit's (decayed to where the plain formula
 //! produces subnormal floats), against that plain formula. Target: an update within 2.1 ms on
-//! one core of the project's 2-core machine (docs/RESULTS.md); `crates/nn/benches/pytorch_update.py` times the same update in
-//! PyTorch.
+//! one core of the project's 2-core machine (docs/RESULTS.md);
+//! `crates/nn/benches/pytorch_update.py` times the same update in PyTorch.
 
 use std::hint::black_box;
 
