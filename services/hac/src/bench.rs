@@ -215,13 +215,13 @@ pub fn run_weights(
         learner.shutdown();
     }
     if json {
-        println!("{}", serde_json::to_string(&r)?);
+        outln!("{}", serde_json::to_string(&r)?);
     } else {
-        println!(
+        outln!(
             "| transport | watchers | versions | snapshot | delivered | delay p50 | delay p99 | max |"
         );
-        println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
-        println!(
+        outln!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+        outln!(
             "| {transport:?} | {} | {} | {} KiB | {} of {} | {:.0} us | {:.0} us | {:.0} us |",
             r.watchers,
             r.versions,
@@ -290,16 +290,16 @@ pub fn run_ingest(bench: &IngestBench) -> Result<()> {
 fn print_reports(reports: &[IngestReport], json: bool) -> Result<()> {
     if json {
         for r in reports {
-            println!("{}", serde_json::to_string(r)?);
+            outln!("{}", serde_json::to_string(r)?);
         }
         return Ok(());
     }
-    println!(
+    outln!(
         "| transport | actors | batch | transitions/s | batches/s | ack p50 | ack p99 | stored = acked |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    outln!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     for r in reports {
-        println!(
+        outln!(
             "| {:?} | {} | {} | {:.0} | {:.0} | {:.0} us | {:.0} us | {} = {} |",
             r.transport,
             r.actors,

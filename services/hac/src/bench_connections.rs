@@ -303,9 +303,14 @@ pub fn run(bench: &ConnectionsBench) -> Result<ConnectionsReport> {
     let started = Instant::now();
     let mut samples = Vec::new();
     if !bench.json {
-        println!(
+        outln!(
             "{:>8} {:>10} {:>10} {:>8} {:>10} {:>14}",
-            "t (s)", "RSS MiB", "peak MiB", "threads", "actors", "transitions"
+            "t (s)",
+            "RSS MiB",
+            "peak MiB",
+            "threads",
+            "actors",
+            "transitions"
         );
     }
     loop {
@@ -319,7 +324,7 @@ pub fn run(bench: &ConnectionsBench) -> Result<ConnectionsReport> {
             transitions_acked: counters.batches_acked.load(Ordering::Relaxed) * bench.batch as u64,
         };
         if !bench.json {
-            println!(
+            outln!(
                 "{:>8.0} {:>10.1} {:>10.1} {:>8} {:>10} {:>14}",
                 sample.at_s,
                 rss_kib as f64 / 1024.0,
@@ -391,11 +396,11 @@ pub fn run(bench: &ConnectionsBench) -> Result<ConnectionsReport> {
 pub fn run_and_print(bench: &ConnectionsBench) -> Result<()> {
     let report = run(bench)?;
     if bench.json {
-        println!("{}", serde_json::to_string(&report)?);
+        outln!("{}", serde_json::to_string(&report)?);
         return Ok(());
     }
     let mib = |kib: u64| kib as f64 / 1024.0;
-    println!(
+    outln!(
         "{} actors ({} connected) for {:.0} s: {} batches of {} acknowledged ({:.0} transitions/s), {} ticks skipped with a full window",
         report.actors,
         report.actors_connected,
@@ -405,7 +410,7 @@ pub fn run_and_print(bench: &ConnectionsBench) -> Result<()> {
         report.transitions_per_s,
         report.ticks_skipped_full_window
     );
-    println!(
+    outln!(
         "learner memory: peak {:.1} MiB; resident {:.1} MiB after 1 min, {:.1} MiB at the end ({:+.1} MiB)",
         mib(report.peak_rss_kib),
         mib(report.rss_after_1_min_kib),

@@ -1333,7 +1333,7 @@ async fn learner_status(url: &str) -> Result<pb::LearnerStatus> {
 pub fn run_and_print(bench: &HostileBench) -> Result<()> {
     let report = run(bench)?;
     if bench.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print_report(&report);
     }
@@ -1369,20 +1369,28 @@ pub fn run_and_print(bench: &HostileBench) -> Result<()> {
 }
 
 fn print_report(r: &HostileReport) {
-    println!(
+    outln!(
         "{} on {} ({} levels, seed {}): {} honest trainers, {} hostile clients",
-        r.mode, r.env, r.levels, r.seed, r.trainers, r.clients
+        r.mode,
+        r.env,
+        r.levels,
+        r.seed,
+        r.trainers,
+        r.clients
     );
-    println!(
+    outln!(
         "hostile inputs: {} in {:.1} s ({:.0}/s); wrong answers: {}",
-        r.hostile_inputs, r.hostile_seconds, r.hostile_inputs_per_s, r.wrong_answers
+        r.hostile_inputs,
+        r.hostile_seconds,
+        r.hostile_inputs_per_s,
+        r.wrong_answers
     );
-    println!();
-    println!("| input | sent | wrong | answers |");
-    println!("| --- | ---: | ---: | --- |");
+    outln!();
+    outln!("| input | sent | wrong | answers |");
+    outln!("| --- | ---: | ---: | --- |");
     for k in &r.kinds {
         let answers: Vec<String> = k.answers.iter().map(|(a, n)| format!("{a} {n}")).collect();
-        println!(
+        outln!(
             "| {} | {} | {} | {} |",
             k.kind,
             k.sent,
@@ -1390,8 +1398,8 @@ fn print_report(r: &HostileReport) {
             answers.join(", ")
         );
     }
-    println!();
-    println!(
+    outln!();
+    outln!(
         "learner: exit {}{}; weights versions checked {}, non-finite values {}; updates undone \
          {}",
         r.learner_exit,
@@ -1400,7 +1408,7 @@ fn print_report(r: &HostileReport) {
         r.weights_non_finite,
         r.diverged_updates
     );
-    println!(
+    outln!(
         "memory (VmRSS): first {:.1} MiB, peak {:.1} MiB, last {:.1} MiB ({} samples)",
         r.first_rss_kib as f64 / 1024.0,
         r.peak_rss_kib as f64 / 1024.0,
@@ -1408,7 +1416,7 @@ fn print_report(r: &HostileReport) {
         r.memory.len()
     );
     let refused: Vec<String> = r.refused.iter().map(|(k, n)| format!("{k} {n}")).collect();
-    println!(
+    outln!(
         "ingest: {} messages reached the learner core, {} stored, {} duplicates; refusals on \
          every RPC: {}",
         r.messages,
@@ -1417,7 +1425,7 @@ fn print_report(r: &HostileReport) {
         refused.join(", ")
     );
     for a in &r.accounts {
-        println!(
+        outln!(
             "{}: acknowledged {} messages, {} transitions, {} duplicates; the learner has {}, \
              {}, {}",
             a.actor_id,
@@ -1429,7 +1437,7 @@ fn print_report(r: &HostileReport) {
             a.learner_duplicates
         );
     }
-    println!(
+    outln!(
         "accounting: {}",
         if r.exactly_once {
             "exactly once"
@@ -1438,7 +1446,7 @@ fn print_report(r: &HostileReport) {
         }
     );
     if let Some(target) = r.stop_at {
-        println!(
+        outln!(
             "run: {} episodes in {:.1} s; best success {:.1}% (target {:.0}%); 90% after {}",
             r.episodes,
             r.wall_time_s,
@@ -1449,7 +1457,7 @@ fn print_report(r: &HostileReport) {
         );
     }
     if let Some(t) = r.throughput_transitions_per_s {
-        println!(
+        outln!(
             "honest gRPC ingest after the inputs: {:.2}M transitions/s",
             t / 1e6
         );

@@ -235,11 +235,11 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
 pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
     let r = run(bench)?;
     if bench.json {
-        println!("{}", serde_json::to_string(&r)?);
+        outln!("{}", serde_json::to_string(&r)?);
         return Ok(());
     }
     let hidden: Vec<String> = r.hidden.iter().map(usize::to_string).collect();
-    println!(
+    outln!(
         "{} level {} of {} (state {}, goal {}, action {}), batch {}, hidden {}: {:.1} MFLOP per \
          update (matrix products) in {} chunks; single-core sgemm on the same shapes: {:.1} \
          GFLOP/s; kernels {}; {} cores",
@@ -257,12 +257,12 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.simd,
         r.cores
     );
-    println!(
+    outln!(
         "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us | steps us |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    outln!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for row in &r.rows {
-        println!(
+        outln!(
             "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} | {:.0} |",
             row.threads,
             row.ms_per_update,
@@ -276,7 +276,7 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
             row.steps_us
         );
     }
-    println!(
+    outln!(
         "(sgemm copies at once: that many independent single-core sgemm runs at the same time, \
          their summed rate over one alone: what the cores give together, the ceiling of the \
          speedup; serial: per update, the part no second thread shares (minibatch copy, the \

@@ -1,6 +1,6 @@
 //! `hac env`: list the built-in environments, describe one, and step one by hand.
 
-use std::io::{BufRead, Write};
+use std::io::{BufRead, Read as _, Write};
 
 use anyhow::{Context, Result, bail};
 use hac_core::{Env, Rng};
@@ -8,11 +8,14 @@ use serde_json::json;
 
 use crate::registry;
 
+/// The longest line `hac env rollout` reads from stdin, in bytes.
+const MAX_LINE: usize = 1 << 20;
+
 /// `hac env list`: one line per environment.
 pub fn list() -> Result<()> {
     for name in registry::names() {
         let env = registry::make(name)?;
-        println!("{name:<14} {}", env.spec().description);
+        outln!("{name:<14} {}", env.spec().description);
     }
     Ok(())
 }
@@ -33,7 +36,7 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         if let Some(t) = &tabular {
             description["tabular"] = serde_json::to_value(t)?;
         }
-        println!("{}", serde_json::to_string_pretty(&description)?);
+        outln!("{}", serde_json::to_string_pretty(&description)?);
         return Ok(());
     }
     let fmt = |v: &[f32]| {
@@ -42,24 +45,24 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
             .collect::<Vec<_>>()
             .join(", ")
     };
-    println!("{} — {}", spec.name, spec.description);
-    println!("  state dimension           {}", spec.state_dim);
-    println!(
+    outln!("{} — {}", spec.name, spec.description);
+    outln!("  state dimension           {}", spec.state_dim);
+    outln!(
         "  primitive action bounds   low [{}]  high [{}]",
         fmt(&spec.action_bounds.low),
         fmt(&spec.action_bounds.high)
     );
-    println!("  end goal dimension        {}", spec.end_goal_dim);
-    println!(
+    outln!("  end goal dimension        {}", spec.end_goal_dim);
+    outln!(
         "  end-goal thresholds       [{}]",
         fmt(&spec.end_goal_thresholds)
     );
-    println!(
+    outln!(
         "  subgoal bounds            low [{}]  high [{}]",
         fmt(&spec.subgoal_bounds.low),
         fmt(&spec.subgoal_bounds.high)
     );
-    println!(
+    outln!(
         "  subgoal thresholds        [{}]",
         fmt(&spec.subgoal_thresholds)
     );
@@ -71,7 +74,7 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         dims.join(", ")
     };
     if spec.end_goal_angles.contains(&true) || spec.subgoal_angles.contains(&true) {
-        println!(
+        outln!(
             "  angle dims (circular)     end goal [{}]  subgoal [{}]",
             angle_dims(&spec.end_goal_angles),
             angle_dims(&spec.subgoal_angles)
@@ -84,14 +87,14 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         ("achieved subgoal box     ", &spec.achieved_subgoal_bounds),
     ] {
         if !bounds.is_empty() {
-            println!(
+            outln!(
                 "  {label} low [{}]  high [{}]",
                 fmt(&bounds.low),
                 fmt(&bounds.high)
             );
         }
     }
-    println!(
+    outln!(
         "  max primitive actions     {}{}",
         spec.max_actions,
         if max_actions.is_some() {
@@ -100,16 +103,16 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
             " (a run's --max-actions / max_actions replaces it)"
         }
     );
-    println!(
+    outln!(
         "  physics steps per action  {}",
         spec.physics_steps_per_action
     );
-    println!("  defaults per number of levels:");
-    println!(
+    outln!("  defaults per number of levels:");
+    outln!(
         "    levels  H     lambda  noise (action / subgoal)              gamma  batch  updates/ep  hidden"
     );
     for c in &defaults {
-        println!(
+        outln!(
             "    {:<7} {:<5} {:<7} {:<37} {:<6} {:<6} {:<11} {:?}",
             c.levels,
             c.horizon,
@@ -122,7 +125,7 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
         );
     }
     if let Some(t) = &tabular {
-        println!(
+        outln!(
             "  learner: tabular Q-learning (the network keys above are unused); [tabular] defaults: \
              learning_rate {}, initial_q {}, max_table_entries {}, replay_updates {}, \
              replay_capacity {}, all_goals {}, all_segments {}",
@@ -135,7 +138,7 @@ pub fn describe(name: &str, json_out: bool, max_actions: Option<usize>) -> Resul
             t.all_segments
         );
     }
-    println!(
+    outln!(
         "  (all keys: hac train --print-config --env {} --levels K)",
         spec.name
     );
@@ -166,12 +169,31 @@ pub fn rollout(name: &str, seed: u64, state: Option<&str>) -> Result<()> {
     emit(&mut out, 0, env.as_ref())?;
     let action_dim = env.spec().action_dim();
     let mut action = vec![0.0f32; action_dim];
-    for (i, line) in std::io::stdin().lock().lines().enumerate() {
-        let line = line.context("reading stdin")?;
+    let mut stdin = std::io::stdin().lock();
+    let mut line = String::new();
+    for i in 0.. {
+        line.clear();
+        // At most MAX_LINE bytes per line: input without line breaks is refused, not buffered
+        // until memory runs out.
+        let read = (&mut stdin)
+            .take(MAX_LINE as u64 + 1)
+            .read_line(&mut line)
+            .context("reading stdin")?;
+        if read == 0 {
+            break;
+        }
+        if line.len() > MAX_LINE {
+            bail!(
+                "line {}: longer than {MAX_LINE} bytes; an action is one JSON array of \
+                 {action_dim} numbers per line",
+                i + 1
+            );
+        }
+        let line = line.trim_end_matches(['\n', '\r']);
         if line.trim().is_empty() {
             continue;
         }
-        let values: Vec<f64> = serde_json::from_str(&line).with_context(|| {
+        let values: Vec<f64> = serde_json::from_str(line).with_context(|| {
             format!(
                 "line {}: an action must be a JSON array of {action_dim} numbers, got `{line}`",
                 i + 1

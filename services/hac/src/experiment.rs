@@ -173,7 +173,7 @@ pub fn run(grid: Grid) -> Result<()> {
             Found::Unfinished(why) => to_train.push((i, Some(why))),
         }
     }
-    println!(
+    outln!(
         "experiment: {} x {} with levels {:?} x {} seeds = {} runs{}, {} at a time ({} learner \
          threads each); writing {}",
         grid.envs.join(","),
@@ -199,7 +199,7 @@ pub fn run(grid: Grid) -> Result<()> {
         grid.out.display()
     );
     for (n, (_, f)) in reused.iter().enumerate() {
-        println!(
+        outln!(
             "[{}/{}] {}: reused ({})",
             n + 1,
             runs.len(),
@@ -209,7 +209,7 @@ pub fn run(grid: Grid) -> Result<()> {
     }
     for (i, why) in &to_train {
         if let Some(why) = why {
-            println!(
+            outln!(
                 "{}: unfinished ({why}); training it again from the start",
                 run_path(&grid.out, &runs[*i]).display()
             );
@@ -238,14 +238,14 @@ pub fn run(grid: Grid) -> Result<()> {
                         ""
                     };
                     match &result {
-                        Ok(f) => println!(
+                        Ok(f) => outln!(
                             "[{n}/{}] {}: {}{again}",
                             runs.len(),
                             run_label(&f.config),
                             outcome(&f.summary)
                         ),
                         Err(e) => {
-                            println!(
+                            outln!(
                                 "[{n}/{}] {} failed{again}: {e:#}",
                                 runs.len(),
                                 config.run_name()
@@ -311,8 +311,8 @@ pub fn run(grid: Grid) -> Result<()> {
     }
     let md_path = grid.out.join("summary.md");
     std::fs::write(&md_path, &tables).with_context(|| format!("writing {}", md_path.display()))?;
-    println!("{tables}");
-    println!(
+    outln!("{tables}");
+    outln!(
         "done in {:.1}s: {} and {}",
         started.elapsed().as_secs_f64(),
         svgs.join(", "),

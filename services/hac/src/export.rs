@@ -67,7 +67,7 @@ pub fn run(args: &ExportArgs) -> Result<()> {
     let source = load(args)?;
     let policy = policy(&source)?;
     run_dir::write_file(&args.out, &policy.to_safetensors())?;
-    println!(
+    outln!(
         "exported the {}-level {} policy from {} to {}",
         source.run.levels,
         source.run.env,

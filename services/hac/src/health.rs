@@ -47,7 +47,7 @@ pub fn run(args: &HealthArgs) -> Result<()> {
     };
     match status {
         ServingStatus::Serving => {
-            println!("{shown} at {}: SERVING", args.url);
+            outln!("{shown} at {}: SERVING", args.url);
             Ok(())
         }
         other => bail!("{shown} at {}: {}", args.url, other.as_str_name()),

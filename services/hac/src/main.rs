@@ -19,6 +19,9 @@
 //! directory, [`schedule`] is the reference training schedule for any learner, [`tabular_cmd`]
 //! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
+#[macro_use]
+mod output;
+
 mod bench;
 mod bench_connections;
 mod bench_grpc;
@@ -37,14 +40,16 @@ mod tabular_cmd;
 use hac_run::logging::{LogFormat, error_chain, init_tracing};
 use hac_run::{config, plot, registry, run_dir};
 
+use std::cell::RefCell;
 use std::path::PathBuf;
+use std::rc::Rc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use hac_agent::{Agent, RoundReport};
-use hac_core::{Episodes, LevelCounts, Mode};
+use hac_core::{Episodes, LevelCounts, Mode, Policy};
 use hac_learner::LearnerOptions;
 use hac_run::daemon::{self, ConfigFile, Mount};
 use hac_serve::train_embedded_with;
@@ -330,9 +335,9 @@ enum EnvCommand {
         #[arg(long)]
         max_actions: Option<usize>,
     },
-    /// Step an environment by hand: reads one JSON action array per stdin line, prints one JSON
-    /// object per state (`{"step": n, "state": [...]}`), starting with the initial state.
-    /// Actions are clipped to the action bounds.
+    /// Step an environment by hand: reads one JSON action array per stdin line (lines of at most
+    /// 1 MiB), prints one JSON object per state (`{"step": n, "state": [...]}`), starting with
+    /// the initial state. Actions are clipped to the action bounds.
     Rollout {
         /// Environment name (see `hac env list`).
         #[arg(long)]
@@ -424,6 +429,12 @@ struct EvalArgs {
     /// thresholds, final state, what each level did).
     #[arg(long)]
     per_episode: bool,
+    /// `--per-episode`, and before each episode's line one JSON line per subgoal that a level
+    /// above 0 proposed: the episode, the level, the state and goal it proposed from, and its
+    /// output (HIRO's high level: the relative goal). A level's next line gives the state its
+    /// attempt ended in. Greedy episodes of a neural run only.
+    #[arg(long, conflicts_with = "behaviour")]
+    subgoals: bool,
     /// Play the behaviour policy of training instead of greedy episodes: exploration noise,
     /// random actions and subgoal testing as in training episodes, with training end goals,
     /// nothing stored or learned. The per-level figures then also say how many subgoals each
@@ -581,6 +592,7 @@ fn main() {
         Command::Status(args) => status_cmd::run(&args),
     };
     if let Err(e) = result {
+        output::exit_if_broken_pipe(&e);
         eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }
@@ -603,7 +615,7 @@ fn train(args: TrainArgs) -> Result<()> {
         },
     )?;
     if args.print_config {
-        print!("{}", toml::to_string(&run)?);
+        out!("{}", toml::to_string(&run)?);
         return Ok(());
     }
     // Checked before the run directory is made.
@@ -620,11 +632,11 @@ fn train(args: TrainArgs) -> Result<()> {
         return tabular_cmd::train(&run, dir, &out);
     }
     let interrupt = hac_run::signals::interrupt_flag()?;
-    println!("{}", run_dir::training_banner(&run, &out, None));
+    outln!("{}", run_dir::training_banner(&run, &out, None));
     let started = Instant::now();
     let mut write_error = None;
     let trained = train_embedded_with(&run, options, &interrupt, |report: &RoundReport| {
-        println!("{}", schedule::progress_line(report));
+        outln!("{}", schedule::progress_line(report));
         if let Err(e) = dir.record(report) {
             write_error.get_or_insert(e);
         }
@@ -633,7 +645,7 @@ fn train(args: TrainArgs) -> Result<()> {
         return Err(e);
     }
     if interrupt.load(Ordering::Relaxed) {
-        println!(
+        outln!(
             "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
             trained.actor.episodes
         );
@@ -646,8 +658,35 @@ fn train(args: TrainArgs) -> Result<()> {
         &trained.curve,
         started.elapsed().as_secs_f64(),
     )?;
-    println!("{}", summary.done_line(&out));
+    outln!("{}", summary.done_line(&out));
     Ok(())
+}
+
+/// A policy that records what the levels above 0 propose, for `hac eval --subgoals`: one JSON
+/// object per proposal, which the episode's callback prints with the episode's index.
+struct Traced<'a, P> {
+    inner: &'a mut P,
+    proposals: Option<Rc<RefCell<Vec<serde_json::Value>>>>,
+}
+
+impl<'a, P: Policy> Traced<'a, P> {
+    /// Records into `proposals` when given, else only passes the calls on.
+    fn new(inner: &'a mut P, proposals: Option<Rc<RefCell<Vec<serde_json::Value>>>>) -> Self {
+        Self { inner, proposals }
+    }
+}
+
+impl<P: Policy> Policy for Traced<'_, P> {
+    fn act(&mut self, level: usize, state: &[f32], goal: &[f32], action: &mut [f32]) {
+        self.inner.act(level, state, goal, action);
+        if let Some(proposals) = &self.proposals
+            && level > 0
+        {
+            proposals.borrow_mut().push(serde_json::json!({
+                "level": level, "state": state, "goal": goal, "subgoal": action,
+            }));
+        }
+    }
 }
 
 fn eval(args: EvalArgs) -> Result<()> {
@@ -662,7 +701,14 @@ fn eval(args: EvalArgs) -> Result<()> {
     let mut totals = vec![LevelCounts::default(); run.levels];
     let mut this_episode = vec![LevelCounts::default(); run.levels];
     let mut moved = 0usize;
+    let proposals = Rc::new(RefCell::new(Vec::new()));
     let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], rollout: &Episodes| {
+        for mut line in proposals.borrow_mut().drain(..) {
+            if let serde_json::Value::Object(fields) = &mut line {
+                fields.insert("episode".into(), index.into());
+            }
+            outln!("{line}");
+        }
         this_episode.fill(LevelCounts::default());
         rollout.add_level_counts(&mut this_episode);
         for (total, this) in totals.iter_mut().zip(&this_episode) {
@@ -670,8 +716,8 @@ fn eval(args: EvalArgs) -> Result<()> {
         }
         let moved_this = rollout.moved_end_goal();
         moved += usize::from(moved_this);
-        if args.per_episode {
-            println!(
+        if args.per_episode || args.subgoals {
+            outln!(
                 "{}",
                 serde_json::json!({"episode": index, "success": outcome.success, "steps": outcome.steps, "end_goal": rollout.end_goal(), "start_achieved": rollout.start_achieved(), "final_achieved": rollout.final_achieved(), "moved": moved_this, "final_state": state, "levels": this_episode})
             );
@@ -680,6 +726,12 @@ fn eval(args: EvalArgs) -> Result<()> {
     };
     let mut weights = "weights/";
     let success = if tabular_cmd::handles(&run.env) {
+        if args.subgoals {
+            anyhow::bail!(
+                "`{}` is a grid world learned by tabular HAC: --subgoals traces neural runs",
+                run.env
+            );
+        }
         if args.best {
             anyhow::bail!(
                 "`{}` is a grid world learned by tabular HAC: its runs keep the last Q tables only \
@@ -694,7 +746,7 @@ fn eval(args: EvalArgs) -> Result<()> {
         let (_, mut policy) = export::best_policy(&args.run, &run, env.spec())?;
         hac_agent::evaluate(
             env.as_mut(),
-            &mut policy,
+            &mut Traced::new(&mut policy, args.subgoals.then(|| proposals.clone())),
             &run,
             episodes,
             args.seed,
@@ -707,7 +759,7 @@ fn eval(args: EvalArgs) -> Result<()> {
             .context("loading the run's weights")?;
         hac_agent::evaluate(
             env.as_mut(),
-            &mut agent,
+            &mut Traced::new(&mut agent, args.subgoals.then(|| proposals.clone())),
             &run,
             episodes,
             args.seed,
@@ -724,12 +776,12 @@ fn eval(args: EvalArgs) -> Result<()> {
         "greedy test"
     };
     if args.json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({"run": args.run, "weights": weights, "env": run.env, "levels": run.levels, "episodes": episodes, "mode": if args.behaviour { "behaviour" } else { "greedy" }, "success_rate": success, "moved_rate": moved_rate, "per_level": counted.then_some(&totals)})
         );
     } else {
-        println!(
+        outln!(
             "{} ({weights}): {} with {} levels: success {:.1}% over {} {kind} episodes",
             args.run.display(),
             run.env,
@@ -737,14 +789,14 @@ fn eval(args: EvalArgs) -> Result<()> {
             100.0 * success,
             episodes
         );
-        println!(
+        outln!(
             "  achieved end goal moved beyond the end goal's thresholds (last state against \
              first) in {:.1}% of the episodes",
             100.0 * moved_rate
         );
         if counted {
             for (level, t) in totals.iter().enumerate().rev() {
-                println!("  {}", level_counts_line(level, t));
+                outln!("  {}", level_counts_line(level, t));
             }
         }
     }

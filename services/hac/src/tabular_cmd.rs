@@ -127,20 +127,20 @@ pub fn train_into(
 /// `hac train` for a grid world, into the already created run directory `dir` at `out`.
 pub fn train(run: &RunConfig, mut dir: RunDir, out: &Path) -> Result<()> {
     let interrupt = hac_run::signals::interrupt_flag()?;
-    println!(
+    outln!(
         "{}",
         run_dir::training_banner(run, out, Some("tabular Q-learning"))
     );
     let (trained, summary) = train_into(run, &mut dir, &interrupt, |report| {
-        println!("{}", schedule::progress_line(report));
+        outln!("{}", schedule::progress_line(report));
     })?;
     if interrupt.load(Ordering::Relaxed) {
-        println!(
+        outln!(
             "interrupted after {} episodes: saved what was learned",
             trained.episodes
         );
     }
-    println!("{}", summary.done_line(out));
+    outln!("{}", summary.done_line(out));
     Ok(())
 }
 

@@ -101,7 +101,7 @@ pub fn run(args: &RenderArgs) -> Result<()> {
         output.write(&canvas, delay)?;
     }
     output.finish()?;
-    println!(
+    outln!(
         "{}: {} with {} level{}, seed {}: {} ({} primitive actions); {} frames written to {}",
         args.run.display(),
         run.env,

@@ -3,7 +3,7 @@
 //! in one form everywhere, and errors say each cause once.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Command, ExitStatus, Output};
 
 use crate::common;
 use common::{hac_output, text};
@@ -141,6 +141,21 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
         "level 0 proposes no subgoals: {result}"
     );
 
+    // A reader that stops early (`| head -n 1`) ends the command quietly, not with a panic.
+    let (first, status, stderr) = first_line_then_close(
+        &[
+            "eval",
+            "--run",
+            out_s,
+            "--episodes",
+            "5000",
+            "--per-episode",
+        ],
+        "",
+    );
+    assert!(first.starts_with("{\"end_goal\":"), "{first}");
+    assert!(status.success() && stderr.is_empty(), "{status}: {stderr}");
+
     // --per-episode: one line per episode with its end goal, final state and what each level
     // did, then the summary and a line per level.
     let o = hac_output(&["eval", "--run", out_s, "--episodes", "3", "--per-episode"]);
@@ -189,6 +204,44 @@ fn train_writes_a_run_directory_and_eval_reads_it() {
         assert_eq!(levels[1]["reached"], u64::from(reached), "{line}");
     }
     assert!(lines[3].contains("success"), "{}", lines[3]);
+
+    // --subgoals: before each episode's line, one line per subgoal level 1 proposed, from the
+    // state its attempt started in; as many as level 1's attempts in that episode.
+    let o = hac_output(&["eval", "--run", out_s, "--episodes", "2", "--subgoals"]);
+    assert!(o.status.success(), "eval failed: {}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    let lines: Vec<serde_json::Value> = stdout
+        .lines()
+        .take_while(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let mut proposed = 0;
+    let mut episodes = 0;
+    for line in &lines {
+        if line.get("subgoal").is_some() {
+            assert_eq!(line["episode"], episodes, "{line}");
+            assert_eq!(line["level"], 1, "{line}");
+            assert_eq!(line["state"].as_array().unwrap().len(), 2, "{line}");
+            let subgoal: Vec<f64> = serde_json::from_value(line["subgoal"].clone()).unwrap();
+            // Mountain car's subgoal box: x in [-1.2, 0.6], v in [-0.07, 0.07] (in f32).
+            let within = |v: f64, low: f64, high: f64| low - 1e-6 <= v && v <= high + 1e-6;
+            assert!(
+                subgoal.len() == 2
+                    && within(subgoal[0], -1.2, 0.6)
+                    && within(subgoal[1], -0.07, 0.07),
+                "{line}"
+            );
+            proposed += 1;
+        } else {
+            assert_eq!(line["episode"], episodes, "{line}");
+            assert_eq!(line["levels"][1]["attempts"], proposed, "{line}");
+            episodes += 1;
+            proposed = 0;
+        }
+    }
+    assert_eq!(episodes, 2, "{stdout}");
+    let o = hac_output(&["eval", "--run", out_s, "--subgoals", "--behaviour"]);
+    assert!(!o.status.success(), "--subgoals with --behaviour accepted");
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -269,13 +322,47 @@ fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("the hac binary runs");
+    let written = child.stdin.take().unwrap().write_all(stdin.as_bytes());
+    let output = child.wait_with_output().unwrap();
+    // A command that refuses its input may exit before reading all of it.
+    if let Err(e) = written {
+        assert!(
+            e.kind() == std::io::ErrorKind::BrokenPipe && !output.status.success(),
+            "writing stdin: {e}"
+        );
+    }
+    output
+}
+
+/// Runs `hac <args>` with `stdin` fed from a thread, reads the first line of its output and then
+/// closes the pipe, as `| head -n 1` does; returns that line, the exit status and stderr.
+fn first_line_then_close(args: &[&str], stdin: &str) -> (String, ExitStatus, String) {
+    use std::io::{BufRead, BufReader, Read, Write};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
+        .args(args)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the hac binary runs");
+    let mut input = child.stdin.take().unwrap();
+    let stdin = stdin.to_owned();
+    // The child stops reading once its output is gone: the write may fail.
+    let feeder = std::thread::spawn(move || drop(input.write_all(stdin.as_bytes())));
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    let mut stderr = String::new();
     child
-        .stdin
+        .stderr
         .take()
         .unwrap()
-        .write_all(stdin.as_bytes())
+        .read_to_string(&mut stderr)
         .unwrap();
-    child.wait_with_output().unwrap()
+    let status = child.wait().unwrap();
+    feeder.join().unwrap();
+    (first, status, stderr)
 }
 
 #[test]
@@ -415,6 +502,22 @@ fn env_rollout_steps_from_a_set_state_and_rejects_bad_lines() {
         );
         assert!(text(&o.stderr).contains("line 1"), "{}", text(&o.stderr));
     }
+    // A line that never ends is refused once it passes 1 MiB, not buffered without bound.
+    let endless = "0".repeat(3 << 20);
+    let o = hac_with_stdin(&["env", "rollout", "--env", "mountain-car"], &endless);
+    assert!(
+        !o.status.success() && text(&o.stderr).contains("line 1: longer than 1048576 bytes"),
+        "{}",
+        text(&o.stderr)
+    );
+    // Thousands of actions, read while the output is read: a reader that stops after the first
+    // line ends the rollout quietly.
+    let (first, status, stderr) = first_line_then_close(
+        &["env", "rollout", "--env", "cartpole"],
+        &"[0.5]\n".repeat(200_000),
+    );
+    assert!(first.starts_with("{\"step\":0,"), "{first}");
+    assert!(status.success() && stderr.is_empty(), "{status}: {stderr}");
     // The cart-pole hanging at rest over x = 0.5, pushed right: the cart moves right, the pole
     // lags behind it (q past pi, wrapped to negative: sin q < 0).
     let o = hac_with_stdin(
