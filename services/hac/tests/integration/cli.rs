@@ -313,15 +313,20 @@ fn print_config_shows_the_resolved_configuration() {
     assert!(config.contains("gamma = 0.9"), "{config}");
 }
 
-fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
-    use std::io::Write;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
+/// `hac <args>` with stdin, stdout and stderr piped.
+fn spawn_piped(args: &[&str]) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_hac"))
         .args(args)
         .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
-        .expect("the hac binary runs");
+        .expect("the hac binary runs")
+}
+
+fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
+    use std::io::Write;
+    let mut child = spawn_piped(args);
     let written = child.stdin.take().unwrap().write_all(stdin.as_bytes());
     let output = child.wait_with_output().unwrap();
     // A command that refuses its input may exit before reading all of it.
@@ -338,13 +343,7 @@ fn hac_with_stdin(args: &[&str], stdin: &str) -> Output {
 /// closes the pipe, as `| head -n 1` does; returns that line, the exit status and stderr.
 fn first_line_then_close(args: &[&str], stdin: &str) -> (String, ExitStatus, String) {
     use std::io::{BufRead, BufReader, Read, Write};
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hac"))
-        .args(args)
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("the hac binary runs");
+    let mut child = spawn_piped(args);
     let mut input = child.stdin.take().unwrap();
     let stdin = stdin.to_owned();
     // The child stops reading once its output is gone: the write may fail.
