@@ -12,6 +12,8 @@
 //!   newest K, loaded newest-valid-first;
 //! - [`plot`]: SVG learning curves;
 //! - [`logging`]: the tracing setup every binary shares;
+//! - [`output`]: the binaries' output on stdout ([`outln!`], [`out!`]), ending quietly when the
+//!   reader closes the pipe;
 //! - [`signals`]: the interrupt flag of long-running commands;
 //! - [`security`]: the token and TLS flags of the daemons and `hac status`.
 
@@ -19,6 +21,7 @@ pub mod checkpoints;
 pub mod config;
 pub mod daemon;
 pub mod logging;
+pub mod output;
 pub mod plot;
 pub mod registry;
 pub mod run_dir;

@@ -145,7 +145,7 @@ pub fn run(args: ActorArgs) -> Result<()> {
     if args.config.print {
         // The run itself comes from the learner at registration.
         if let Some(table) = &args.config.resolved {
-            print!("{}", table.to_toml());
+            hac_run::out!("{}", table.to_toml());
         }
         return Ok(());
     }

@@ -19,8 +19,9 @@
 //! directory, [`schedule`] is the reference training schedule for any learner, [`tabular_cmd`]
 //! trains and loads the grid worlds' tabular learner, [`render`] draws episodes.
 
+// `outln!` and `out!` (hac_run::output) in every module.
 #[macro_use]
-mod output;
+extern crate hac_run;
 
 mod bench;
 mod bench_connections;
@@ -592,7 +593,7 @@ fn main() {
         Command::Status(args) => status_cmd::run(&args),
     };
     if let Err(e) = result {
-        output::exit_if_broken_pipe(&e);
+        hac_run::output::exit_if_broken_pipe(&e);
         eprintln!("error: {}", error_chain(&e));
         std::process::exit(1);
     }

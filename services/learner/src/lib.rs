@@ -276,9 +276,9 @@ impl LearnerArgs {
 pub fn run(args: LearnerArgs) -> Result<()> {
     let run = args.resolve()?;
     if args.config.print {
-        print!("{}", run.to_toml());
+        hac_run::out!("{}", run.to_toml());
         if let Some(table) = &args.config.resolved {
-            print!("\n{}", table.to_toml());
+            hac_run::out!("\n{}", table.to_toml());
         }
         return Ok(());
     }

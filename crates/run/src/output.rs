@@ -1,7 +1,7 @@
-//! The command's output on stdout, for a reader that may stop reading early.
+//! The binaries' output on stdout, for a reader that may stop reading early.
 //!
 //! `hac eval --per-episode | head -n 3` closes the pipe while `hac` still writes. `println!`
-//! would then panic with a backtrace; `outln!` and `out!` (in scope in every module) end the
+//! would then panic with a backtrace; [`outln!`](crate::outln) and [`out!`](crate::out) end the
 //! process quietly with status 0 instead, as the usual Unix tools do, and an error whose cause is
 //! a broken pipe (a command that writes through its own `Write`) is ended the same way by
 //! [`exit_if_broken_pipe`]. Any other write error still panics or fails the command.
@@ -9,13 +9,15 @@
 use std::fmt;
 use std::io::{self, Write as _};
 
-/// `println!` for the command's output; see the module docs.
+/// `println!` for a binary's output; see [`output`](crate::output).
+#[macro_export]
 macro_rules! outln {
     () => { $crate::output::write(format_args!("\n")) };
     ($($arg:tt)*) => { $crate::output::write(format_args!("{}\n", format_args!($($arg)*))) };
 }
 
-/// `print!` for the command's output; see the module docs.
+/// `print!` for a binary's output; see [`output`](crate::output).
+#[macro_export]
 macro_rules! out {
     ($($arg:tt)*) => { $crate::output::write(format_args!($($arg)*)) };
 }
