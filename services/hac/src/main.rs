@@ -43,7 +43,6 @@ use hac_run::{config, plot, registry, run_dir};
 
 use std::cell::RefCell;
 use std::path::PathBuf;
-use std::rc::Rc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -663,29 +662,26 @@ fn train(args: TrainArgs) -> Result<()> {
     Ok(())
 }
 
-/// A policy that records what the levels above 0 propose, for `hac eval --subgoals`: one JSON
-/// object per proposal, which the episode's callback prints with the episode's index.
+/// A subgoal a level above 0 proposed: the level, the state and goal it proposed from, and its
+/// output.
+type Proposal = (usize, Vec<f32>, Vec<f32>, Vec<f32>);
+
+/// A policy that records what the levels above 0 propose when given somewhere to put it, for
+/// `hac eval --subgoals`; the episode's callback prints the records.
 struct Traced<'a, P> {
     inner: &'a mut P,
-    proposals: Option<Rc<RefCell<Vec<serde_json::Value>>>>,
-}
-
-impl<'a, P: Policy> Traced<'a, P> {
-    /// Records into `proposals` when given, else only passes the calls on.
-    fn new(inner: &'a mut P, proposals: Option<Rc<RefCell<Vec<serde_json::Value>>>>) -> Self {
-        Self { inner, proposals }
-    }
+    proposals: Option<&'a RefCell<Vec<Proposal>>>,
 }
 
 impl<P: Policy> Policy for Traced<'_, P> {
     fn act(&mut self, level: usize, state: &[f32], goal: &[f32], action: &mut [f32]) {
         self.inner.act(level, state, goal, action);
-        if let Some(proposals) = &self.proposals
+        if let Some(proposals) = self.proposals
             && level > 0
         {
-            proposals.borrow_mut().push(serde_json::json!({
-                "level": level, "state": state, "goal": goal, "subgoal": action,
-            }));
+            proposals
+                .borrow_mut()
+                .push((level, state.to_vec(), goal.to_vec(), action.to_vec()));
         }
     }
 }
@@ -702,13 +698,14 @@ fn eval(args: EvalArgs) -> Result<()> {
     let mut totals = vec![LevelCounts::default(); run.levels];
     let mut this_episode = vec![LevelCounts::default(); run.levels];
     let mut moved = 0usize;
-    let proposals = Rc::new(RefCell::new(Vec::new()));
+    let proposals = RefCell::new(Vec::new());
+    let recorded = args.subgoals.then_some(&proposals);
     let on_episode = |outcome: &hac_core::EpisodeOutcome, state: &[f32], rollout: &Episodes| {
-        for mut line in proposals.borrow_mut().drain(..) {
-            if let serde_json::Value::Object(fields) = &mut line {
-                fields.insert("episode".into(), index.into());
-            }
-            outln!("{line}");
+        for (level, from, goal, subgoal) in proposals.borrow_mut().drain(..) {
+            outln!(
+                "{}",
+                serde_json::json!({"episode": index, "level": level, "state": from, "goal": goal, "subgoal": subgoal})
+            );
         }
         this_episode.fill(LevelCounts::default());
         rollout.add_level_counts(&mut this_episode);
@@ -747,7 +744,10 @@ fn eval(args: EvalArgs) -> Result<()> {
         let (_, mut policy) = export::best_policy(&args.run, &run, env.spec())?;
         hac_agent::evaluate(
             env.as_mut(),
-            &mut Traced::new(&mut policy, args.subgoals.then(|| proposals.clone())),
+            &mut Traced {
+                inner: &mut policy,
+                proposals: recorded,
+            },
             &run,
             episodes,
             args.seed,
@@ -760,7 +760,10 @@ fn eval(args: EvalArgs) -> Result<()> {
             .context("loading the run's weights")?;
         hac_agent::evaluate(
             env.as_mut(),
-            &mut Traced::new(&mut agent, args.subgoals.then(|| proposals.clone())),
+            &mut Traced {
+                inner: &mut agent,
+                proposals: recorded,
+            },
             &run,
             episodes,
             args.seed,
