@@ -9,8 +9,11 @@
 //! ([`hac_nn::LearnerConfig::update_flops`]); the `sgemm` peak is measured in the same
 //! invocation on the hidden layers' three products ([`hac_nn::hidden_layer_sgemm_gflops`]), and
 //! for each thread count above 1 as that many independent copies at once: the cores' own
-//! scaling on work that shares nothing, the ceiling of the update's.
+//! scaling on work that shares nothing, the ceiling of the update's. Around each of those
+//! rows it also times one cache line's round trip between two threads: how far apart the host
+//! has put the cores, which on a virtual machine can change from one second to the next.
 
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use anyhow::{Result, bail};
@@ -60,6 +63,12 @@ pub struct ThreadsRow {
     /// Microseconds per update in the two optimiser steps (the chunk gradients summed, Adam,
     /// the kept transposes refreshed), which the threads share tensor by tensor.
     pub steps_us: f64,
+    /// Nanoseconds for one cache line to go from one thread to another and back, measured
+    /// just before and just after this row (null on one thread): about 65 ns between cores
+    /// that share a cache on the AMD EPYC hosts of docs/RESULTS.md, 300-360 ns when the host
+    /// put the virtual machine's two cores far apart. The threads of an update hand each other
+    /// gradients and weights every step, so that distance is paid many times per update.
+    pub round_trip_ns: Option<[f64; 2]>,
 }
 
 /// `hac bench update` result.
@@ -120,6 +129,46 @@ fn concurrent_sgemm_gflops(width: usize, batch: usize, threads: usize, seconds: 
     })
 }
 
+/// A cache line on its own, so that nothing else shares it.
+#[repr(align(128))]
+struct Line(AtomicU64);
+
+/// Nanoseconds per round trip of one cache line between two threads, over at least
+/// `seconds`: this thread writes an odd number, the other answers with the next one, this
+/// thread waits for it. Both spin, so it needs two cores.
+fn core_round_trip_ns(seconds: f64) -> f64 {
+    let line = Line(AtomicU64::new(0));
+    let stop = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            let mut expected = 1;
+            while !stop.load(Ordering::Relaxed) {
+                if line.0.load(Ordering::Acquire) == expected {
+                    line.0.store(expected + 1, Ordering::Release);
+                    expected += 2;
+                }
+                std::hint::spin_loop();
+            }
+        });
+        let start = Instant::now();
+        let mut trips = 0u64;
+        let mut value = 1;
+        while trips == 0 || start.elapsed().as_secs_f64() < seconds {
+            for _ in 0..1000 {
+                line.0.store(value, Ordering::Release);
+                while line.0.load(Ordering::Acquire) != value + 1 {
+                    std::hint::spin_loop();
+                }
+                value += 2;
+            }
+            trips += 1000;
+        }
+        let ns = start.elapsed().as_secs_f64() * 1e9 / trips as f64;
+        stop.store(true, Ordering::Relaxed);
+        ns
+    })
+}
+
 /// Runs the bench.
 pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
     let env = hac_envs::make(&bench.env)?;
@@ -169,9 +218,11 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
     let fresh = LevelLearner::new(config.clone(), &mut rng);
     let batch = random_batch(&config, batch_size, &mut rng);
     let mut rows: Vec<ThreadsRow> = Vec::new();
+    let round_trip = |t: usize| (t > 1 && cores > 1).then(|| core_round_trip_ns(0.2));
     for &t in &threads {
         let mut learner = fresh.clone();
         learner.set_threads(t);
+        let trip_before = round_trip(t);
         let warm_up = Instant::now();
         while warm_up.elapsed().as_secs_f64() < 0.2 {
             learner.update(&batch);
@@ -184,6 +235,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             updates += 1;
         }
         let seconds = start.elapsed().as_secs_f64();
+        let trip_after = round_trip(t);
         let timing = learner.timing();
         let per_update_us = |d: std::time::Duration| d.as_secs_f64() * 1e6 / updates as f64;
         let per_second = updates as f64 / seconds;
@@ -211,6 +263,7 @@ pub fn run(bench: &UpdateBench) -> Result<UpdateReport> {
             serial_us: per_update_us(timing.serial()),
             waiting_us: per_update_us(timing.waiting),
             steps_us: per_update_us(timing.steps),
+            round_trip_ns: trip_before.zip(trip_after).map(|(a, b)| [a, b]),
         });
     }
     Ok(UpdateReport {
@@ -258,12 +311,15 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         r.cores
     );
     outln!(
-        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us | steps us |"
+        "| threads | ms/update | updates/s | GFLOP/s | of 1-core sgemm | speedup | sgemm copies at once | serial us | waiting us | steps us | core round trip ns, before / after |"
     );
-    outln!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    outln!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for row in &r.rows {
+        let trip = row
+            .round_trip_ns
+            .map_or("-".to_string(), |[a, b]| format!("{a:.0} / {b:.0}"));
         outln!(
-            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} | {:.0} |",
+            "| {} | {:.3} | {:.0} | {:.1} | {:.2} | {:.2}x | {:.2}x | {:.0} | {:.0} | {:.0} | {} |",
             row.threads,
             row.ms_per_update,
             1e3 / row.ms_per_update,
@@ -273,7 +329,8 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
             row.sgemm_scaling,
             row.serial_us,
             row.waiting_us,
-            row.steps_us
+            row.steps_us,
+            trip
         );
     }
     outln!(
@@ -283,7 +340,8 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
          chunks' statistics, Polyak steps); waiting: per update, the calling thread idle after \
          its own share of the chunks and of the optimiser steps until the workers finish theirs; \
          steps: per update, the two optimiser steps (gradient sums, Adam, transposes), which the \
-         threads share by tensor)"
+         threads share by tensor; core round trip: one cache line from one thread to another \
+         and back, just before and after the row: how far apart the cores are)"
     );
     Ok(())
 }

@@ -1245,6 +1245,17 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
     assert_eq!(rows[0]["sgemm_scaling"], 1.0, "{report}");
     let scaling = rows[1]["sgemm_scaling"].as_f64().unwrap();
     assert!(scaling.is_finite() && scaling > 0.1, "{report}");
+    // The cache line's round trip: none on one thread; on two, measured before and after the
+    // row where there are two cores (a spinning pair on one core would take a time slice).
+    assert!(rows[0]["round_trip_ns"].is_null(), "{report}");
+    if report["cores"].as_u64().unwrap() > 1 {
+        let trips = rows[1]["round_trip_ns"].as_array().unwrap();
+        assert_eq!(trips.len(), 2, "{report}");
+        for trip in trips {
+            let ns = trip.as_f64().unwrap();
+            assert!(ns > 1.0 && ns < 1e6, "{report}");
+        }
+    }
 
     let o = hac_output(&["bench", "update", "--level", "2"]);
     assert!(!o.status.success());
