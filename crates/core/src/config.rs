@@ -91,6 +91,13 @@ pub struct AgentConfig {
     /// as that run was trained.
     #[serde(default)]
     pub saturating_tanh: bool,
+    /// Clip each hindsight action of the levels above 0 (the subgoal a level below actually
+    /// achieved, when it missed the proposed one) into the subgoal bounds on every dimension that
+    /// is not an angle, so the stored action is one the actor can propose. `false` (the paper's):
+    /// the achieved subgoal as projected, which lies outside the bounds when the state does (a
+    /// cartpole's cart past +-2.5 m).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub clip_hindsight_actions: bool,
     /// Episodes' worth of transitions each level's replay keeps (sizes the buffers).
     pub episodes_to_store: usize,
     /// Upper bound on any level's replay capacity.
@@ -127,6 +134,7 @@ impl AgentConfig {
             actor_preactivation_l2: 0.0,
             exact_critic_slope: false,
             saturating_tanh: true,
+            clip_hindsight_actions: false,
             episodes_to_store: 200,
             replay_capacity_max: 10_000_000,
             exploration_episodes: 50,

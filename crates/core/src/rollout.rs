@@ -210,12 +210,28 @@ struct LevelState {
     counts: LevelCounts,
 }
 
+/// The box `clip_hindsight_actions` clips hindsight actions into: the subgoal bounds, open on
+/// the dimensions that are angles (which the projection wraps, and a clip would move along the
+/// circle).
+fn hindsight_clip_bounds(spec: &EnvSpec) -> Bounds {
+    let angles = spec.relative_goal_angles();
+    let mut bounds = spec.subgoal_bounds.clone();
+    for d in (0..angles.len()).filter(|&d| angles[d]) {
+        bounds.low[d] = f32::NEG_INFINITY;
+        bounds.high[d] = f32::INFINITY;
+    }
+    bounds
+}
+
 /// Runs episodes through k levels; owns every buffer so that episodes allocate nothing.
 #[derive(Debug)]
 pub struct Hierarchy {
     spec: EnvSpec,
     horizon: usize,
     num_replay_goals: usize,
+    /// The subgoal bounds with the angle dimensions opened up, when hindsight actions are
+    /// clipped into them (`clip_hindsight_actions`).
+    hindsight_clip: Option<Bounds>,
     levels: Vec<LevelState>,
     /// The current observation.
     state: Vec<f32>,
@@ -277,6 +293,9 @@ impl Hierarchy {
             spec: spec.clone(),
             horizon: config.horizon,
             num_replay_goals: config.num_replay_goals,
+            hindsight_clip: config
+                .clip_hindsight_actions
+                .then(|| hindsight_clip_bounds(spec)),
             levels,
             state: vec![0.0; spec.state_dim],
             projected: vec![0.0; spec.end_goal_dim.max(spec.subgoal_dim())],
@@ -489,7 +508,12 @@ impl Hierarchy {
 
         // The subgoal counts as the action taken only if the level below reached it.
         match lower {
-            Some(lower) if !lower.reached => ep.env.project_subgoal(&self.state, &mut lv.hindsight),
+            Some(lower) if !lower.reached => {
+                ep.env.project_subgoal(&self.state, &mut lv.hindsight);
+                if let Some(bounds) = &self.hindsight_clip {
+                    bounds.clip(&mut lv.hindsight);
+                }
+            }
             _ => lv.hindsight.copy_from_slice(&lv.action),
         }
         let (reward, terminal) = if lv.reached {

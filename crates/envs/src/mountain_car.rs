@@ -182,6 +182,7 @@ impl Env for MountainCar {
             // Port: PyTorch's float `tanh`, which rounds to +-1 where libm's does (about 9.01),
             // not from TensorFlow's 7.9074 (the HAC paper's code).
             saturating_tanh: false,
+            clip_hindsight_actions: false,
             // Ours: 500 episodes keep level 0 of a 2-level agent under the port's per-level
             // buffer of 5e5 transitions, which is the cap.
             episodes_to_store: 500,

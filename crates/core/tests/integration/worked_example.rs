@@ -384,3 +384,55 @@ fn angle_goals_are_reached_one_turn_away() {
         .collect();
     assert_eq!(her0, [-1.0, -1.0, 0.0]);
 }
+
+#[test]
+fn clip_hindsight_actions_keeps_a_missed_subgoals_hindsight_action_in_the_subgoal_bounds() {
+    use TransitionKind::*;
+    // Subgoals within +-5; level 1 proposes 4.9, level 0 moves +2 per step and ends at 10 after
+    // its 5 attempts, beyond the bounds. By default the hindsight action is the achieved 10 (the
+    // paper's); with the key it is clipped to 5, in the HER copies too.
+    for (clip, want) in [(false, 10.0), (true, 5.0)] {
+        // The environment projects without clipping (its own subgoal box is +-1000); the run's
+        // subgoal bounds, which the hierarchy's spec holds, are +-5.
+        let mut env = PointEnv::new(1, 2.0, 1000.0, 0.1, 5);
+        let mut spec = env.spec.clone();
+        spec.subgoal_bounds = hac_core::Bounds::symmetric(&[5.0]);
+        let mut config = agent_config(2, 5);
+        config.clip_hindsight_actions = clip;
+        let mut policy = ScriptedPolicy {
+            outputs: vec![VecDeque::from([vec![2.0]]), VecDeque::from([vec![4.9]])],
+        };
+        let mut exploration = ScriptedExploration {
+            perturbation: vec![vec![0.0], vec![0.0]],
+            tests: vec![VecDeque::new(), VecDeque::from([false])],
+            replay_indices: VecDeque::from([0, 0, 0]),
+        };
+        let mut hierarchy = Hierarchy::new(&spec, &config);
+        let mut got: Vec<OwnedTransition> = Vec::new();
+        hierarchy.run_episode_from(
+            &mut env,
+            &[FLAG],
+            &mut policy,
+            &mut exploration,
+            Mode::Train,
+            &mut got,
+        );
+        let level1 = of_level(&got, 1, |_| true);
+        assert_eq!(
+            level1[0],
+            &t(1, HindsightAction, 0.0, want, -1.0, 10.0, FLAG, false),
+            "clip_hindsight_actions = {clip}"
+        );
+        assert!(level1.len() > 1, "HER copies follow");
+        assert!(
+            level1.iter().all(|t| t.action == [want]),
+            "clip_hindsight_actions = {clip}: {level1:?}"
+        );
+        // Level 0's actions are primitive: never touched.
+        assert!(
+            of_level(&got, 0, |_| true)
+                .iter()
+                .all(|t| t.action == [2.0])
+        );
+    }
+}
