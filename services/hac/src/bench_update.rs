@@ -65,7 +65,7 @@ pub struct ThreadsRow {
     pub steps_us: f64,
     /// Nanoseconds for one cache line to go from one thread to another and back, measured
     /// just before and just after this row (null on one thread): about 65 ns between cores
-    /// that share a cache on the AMD EPYC hosts of docs/RESULTS.md, 300-360 ns when the host
+    /// that share a cache on the AMD EPYC hosts of docs/RESULTS.md, 300-400 ns when the host
     /// put the virtual machine's two cores far apart. The threads of an update hand each other
     /// gradients and weights every step, so that distance is paid many times per update.
     pub round_trip_ns: Option<[f64; 2]>,
@@ -135,7 +135,8 @@ struct Line(AtomicU64);
 
 /// Nanoseconds per round trip of one cache line between two threads, over at least
 /// `seconds`: this thread writes an odd number, the other answers with the next one, this
-/// thread waits for it. Both spin, so it needs two cores.
+/// thread waits for it. Both spin, so it needs two cores; on a busy machine a trip may wait for
+/// a time slice, so the clock is read every 100 trips, not every 1000.
 fn core_round_trip_ns(seconds: f64) -> f64 {
     let line = Line(AtomicU64::new(0));
     let stop = AtomicBool::new(false);
@@ -154,14 +155,14 @@ fn core_round_trip_ns(seconds: f64) -> f64 {
         let mut trips = 0u64;
         let mut value = 1;
         while trips == 0 || start.elapsed().as_secs_f64() < seconds {
-            for _ in 0..1000 {
+            for _ in 0..100 {
                 line.0.store(value, Ordering::Release);
                 while line.0.load(Ordering::Acquire) != value + 1 {
                     std::hint::spin_loop();
                 }
                 value += 2;
             }
-            trips += 1000;
+            trips += 100;
         }
         let ns = start.elapsed().as_secs_f64() * 1e9 / trips as f64;
         stop.store(true, Ordering::Relaxed);
