@@ -7,7 +7,7 @@ use crate::common;
 use std::collections::VecDeque;
 
 use common::{PointEnv, ScriptedExploration, ScriptedPolicy, agent_config};
-use hac_core::{Hierarchy, LevelCounts, Mode, OwnedTransition, TransitionKind};
+use hac_core::{EpisodeOutcome, Hierarchy, LevelCounts, Mode, OwnedTransition, TransitionKind};
 
 const FLAG: f32 = 100.0;
 
@@ -34,6 +34,20 @@ fn t(
         terminal: term,
         extra: Vec::new(),
     }
+}
+
+/// Runs one training episode of `hierarchy` toward the end goal [`FLAG`] (never reached) and
+/// returns its outcome and every transition it stored.
+fn train_toward_flag(
+    hierarchy: &mut Hierarchy,
+    env: &mut PointEnv,
+    policy: &mut ScriptedPolicy,
+    exploration: &mut ScriptedExploration,
+) -> (EpisodeOutcome, Vec<OwnedTransition>) {
+    let mut got = Vec::new();
+    let outcome =
+        hierarchy.run_episode_from(env, &[FLAG], policy, exploration, Mode::Train, &mut got);
+    (outcome, got)
 }
 
 /// Level `level`'s transitions in `got` whose kind passes `keep`, in order.
@@ -90,15 +104,7 @@ fn section_3_8_worked_example() {
         replay_indices: VecDeque::from([1, 3, 0, 2, 0]),
     };
     let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
-    let mut got: Vec<OwnedTransition> = Vec::new();
-    let outcome = hierarchy.run_episode_from(
-        &mut env,
-        &[FLAG],
-        &mut policy,
-        &mut exploration,
-        Mode::Train,
-        &mut got,
-    );
+    let (outcome, got) = train_toward_flag(&mut hierarchy, &mut env, &mut policy, &mut exploration);
     assert_eq!(outcome.steps, 10);
     assert!(!outcome.success);
 
@@ -177,15 +183,7 @@ fn reached_subgoal_is_its_own_hindsight_action_and_test_passes_without_penalty()
         replay_indices: VecDeque::from([0, 0, 0]),
     };
     let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
-    let mut got: Vec<OwnedTransition> = Vec::new();
-    hierarchy.run_episode_from(
-        &mut env,
-        &[FLAG],
-        &mut policy,
-        &mut exploration,
-        Mode::Train,
-        &mut got,
-    );
+    let (_, got) = train_toward_flag(&mut hierarchy, &mut env, &mut policy, &mut exploration);
     let level0_ha = of_level(&got, 0, |k| k == HindsightAction);
     assert_eq!(
         level0_ha.len(),
@@ -274,15 +272,7 @@ fn environment_termination_ends_the_episode_and_stops_bootstrapping() {
         replay_indices: VecDeque::from([0, 0, 0]),
     };
     let mut hierarchy = Hierarchy::new(&env.spec.clone(), &config);
-    let mut got: Vec<OwnedTransition> = Vec::new();
-    let outcome = hierarchy.run_episode_from(
-        &mut env,
-        &[FLAG],
-        &mut policy,
-        &mut exploration,
-        Mode::Train,
-        &mut got,
-    );
+    let (outcome, got) = train_toward_flag(&mut hierarchy, &mut env, &mut policy, &mut exploration);
     assert_eq!(outcome.steps, 3);
     assert!(!outcome.success);
     let level0 = of_level(&got, 0, |k| k == HindsightAction);
@@ -408,15 +398,7 @@ fn clip_hindsight_actions_keeps_a_missed_subgoals_hindsight_action_in_the_subgoa
             replay_indices: VecDeque::from([0, 0, 0]),
         };
         let mut hierarchy = Hierarchy::new(&spec, &config);
-        let mut got: Vec<OwnedTransition> = Vec::new();
-        hierarchy.run_episode_from(
-            &mut env,
-            &[FLAG],
-            &mut policy,
-            &mut exploration,
-            Mode::Train,
-            &mut got,
-        );
+        let (_, got) = train_toward_flag(&mut hierarchy, &mut env, &mut policy, &mut exploration);
         let level1 = of_level(&got, 1, |_| true);
         assert_eq!(
             level1[0],
