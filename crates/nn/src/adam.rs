@@ -89,9 +89,8 @@ impl Adam {
         }
     }
 
-    /// The moments `(m, v)` of tensor `i` themselves, to be moved out (to another thread) and
-    /// put back with [`std::mem::swap`].
-    pub(crate) fn moments_mut(&mut self, i: usize) -> (&mut Vec<f32>, &mut Vec<f32>) {
+    /// The moments `(m, v)` of tensor `i`, for [`StepSizes::apply`].
+    pub(crate) fn moments_mut(&mut self, i: usize) -> (&mut [f32], &mut [f32]) {
         let (m, v) = &mut self.moments[i];
         (m, v)
     }

@@ -2,14 +2,14 @@
 //! DDPG-style update of docs/ALGORITHM.md ("Learning, per level").
 
 use std::ops::Range;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvError, SyncSender, TryRecvError};
-use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
+use std::sync::{Arc, Condvar, Mutex, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use hac_core::{AgentConfig, Batch, Bounds, EnvSpec, LevelDims, Rng};
 
-use crate::adam::StepSizes;
 use crate::checkpoint::{TensorReader, TensorWriter};
 use crate::mlp::{MlpTransposed, add_assign, transpose_weights};
 use crate::{ActorNet, Adam, CriticNet, Mlp, MlpGrads, MlpWorkspace, NnError};
@@ -343,21 +343,26 @@ impl BatchCopy {
     }
 }
 
-/// What the chunks of an update read: the configuration, the networks and the minibatch.
-/// Worker threads hold it only while they work on an update's chunks; between the parts of an
-/// update (and between updates) the learner is its only owner and changes it in place.
+/// Everything an update changes: the networks, the transposes kept of their weights, the target
+/// networks and both optimisers, with the buffers of the summed gradients. The learner keeps
+/// one; each of its worker threads keeps a copy of its own, which it changes by the same steps
+/// on the same gradients, so that every copy stays bit-identical to the learner's while no core
+/// writes what another reads (see [`Pool`]).
 #[derive(Debug, Clone)]
-struct Model {
-    config: LearnerConfig,
+struct Nets {
     actor: ActorNet,
     critic: CriticNet,
     /// The transposed weights of `actor` and `critic` that their backward passes read, brought
-    /// up to date wherever the learner changes the weights: each chunk of each part would
-    /// otherwise copy them again.
+    /// up to date wherever the weights change: each chunk of each part would otherwise copy
+    /// them again.
     actor_t: MlpTransposed,
     critic_t: MlpTransposed,
     targets: Option<Targets>,
-    batch: BatchCopy,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    /// The gradients summed over the chunks.
+    actor_grads: MlpGrads,
+    critic_grads: MlpGrads,
 }
 
 /// A thread's scratch buffers for the chunks it runs: the networks' workspaces, the critic's
@@ -365,9 +370,7 @@ struct Model {
 /// keeps one and runs its chunks through it one after the other, so an update's activations
 /// take one chunk's room per thread instead of one per chunk: a quarter, on one thread, for the
 /// reference's 1024 samples in 4 chunks, which keeps them in a core's L2 cache. Nothing in it
-/// outlives a chunk's part: every buffer is written before it is read (the actor part fills
-/// the critic's state and goal rows again, which its chunk's critic part filled on whichever
-/// thread ran it).
+/// outlives a chunk's part: every buffer is written before it is read.
 #[derive(Debug, Clone)]
 struct Scratch {
     actor_ws: MlpWorkspace,
@@ -389,169 +392,174 @@ impl Scratch {
     }
 }
 
-/// One chunk's results: its gradients and sums, read after its part by the optimiser steps and
-/// the update's statistics.
+/// One chunk's results of the critic part: its gradient and sums, read after the part by the
+/// critic's optimiser steps (every thread's) and the update's statistics.
 #[derive(Debug, Clone)]
-struct Chunk {
-    actor_grads: MlpGrads,
-    critic_grads: MlpGrads,
+struct CriticChunk {
+    grads: MlpGrads,
     /// Sums over the chunk's samples of the target, of the critic's squared error and of `Q`
-    /// before the critic step, and of `Q(s, g, pi(s, g))` in the actor step.
+    /// before the critic step.
     target_sum: f32,
     sq_err_sum: f32,
     q_sum: f32,
+}
+
+/// One chunk's results of the actor part.
+#[derive(Debug, Clone)]
+struct ActorChunk {
+    grads: MlpGrads,
+    /// The sum over the chunk's samples of `Q(s, g, pi(s, g))`.
     policy_q_sum: f32,
 }
 
-impl Chunk {
+/// The chunks' results, one lock per chunk and part: each chunk of a part is written by one
+/// thread, then read by all. The two parts' results are apart so that a thread still summing
+/// one part's gradients never holds up another that has gone on to write the next part's.
+#[derive(Debug)]
+struct Chunks {
+    critic: Box<[RwLock<CriticChunk>]>,
+    actor: Box<[RwLock<ActorChunk>]>,
+}
+
+impl Chunks {
     fn new(actor: &ActorNet, critic: &CriticNet) -> Self {
-        Self {
-            actor_grads: MlpGrads::new(actor.mlp()),
-            critic_grads: MlpGrads::new(critic.mlp()),
+        let critic_chunk = || CriticChunk {
+            grads: MlpGrads::new(critic.mlp()),
             target_sum: 0.0,
             sq_err_sum: 0.0,
             q_sum: 0.0,
+        };
+        let actor_chunk = || ActorChunk {
+            grads: MlpGrads::new(actor.mlp()),
             policy_q_sum: 0.0,
+        };
+        Self {
+            critic: (0..GRADIENT_CHUNKS)
+                .map(|_| RwLock::new(critic_chunk()))
+                .collect(),
+            actor: (0..GRADIENT_CHUNKS)
+                .map(|_| RwLock::new(actor_chunk()))
+                .collect(),
         }
-    }
-}
-
-/// The two parts of an update that run chunk by chunk.
-#[derive(Debug, Clone, Copy)]
-enum Part {
-    /// The targets `y` and the critic's gradient.
-    Critic,
-    /// The actor's gradient through the updated critic.
-    Actor,
-}
-
-/// The network an optimiser step moves.
-#[derive(Debug, Clone, Copy)]
-enum Net {
-    Actor,
-    Critic,
-}
-
-impl Chunk {
-    /// The chunk's gradient of `net`.
-    fn grads(&self, net: Net) -> &MlpGrads {
-        match net {
-            Net::Actor => &self.actor_grads,
-            Net::Critic => &self.critic_grads,
-        }
-    }
-}
-
-/// One parameter tensor's part of an optimiser step, moved out of the learner to the thread
-/// that takes it (a worker, or the learner's own) and put back after: the tensor, its summed
-/// gradient, its Adam moments and the transpose the learner keeps of it. Moving the vectors
-/// lets the threads change disjoint tensors without sharing the networks mutably.
-#[derive(Debug, Default)]
-struct StepSlot {
-    /// The tensor's index, in the order of [`Mlp::tensors`].
-    index: usize,
-    /// `(out, inp)` of a weight matrix; `None` for a bias vector.
-    shape: Option<(usize, usize)>,
-    param: Vec<f32>,
-    grad: Vec<f32>,
-    m: Vec<f32>,
-    v: Vec<f32>,
-    /// The kept transpose of a weight matrix; empty where [`MlpTransposed`] keeps none.
-    wt: Vec<f32>,
-}
-
-impl StepSlot {
-    /// Sums the tensor's gradient over the chunks' `grads` in chunk order (each element the same
-    /// sum whichever thread does it), takes the Adam step with `sizes` and refreshes the
-    /// transpose.
-    fn run<'a>(&mut self, sizes: StepSizes, grads: impl Iterator<Item = &'a MlpGrads>) {
-        for (k, chunk) in grads.enumerate() {
-            let g = chunk.tensor(self.index);
-            if k == 0 {
-                self.grad.copy_from_slice(g);
-            } else {
-                add_assign(&mut self.grad, g);
-            }
-        }
-        sizes.apply(&mut self.param, &self.grad, &mut self.m, &mut self.v);
-        if let Some(shape) = self.shape.filter(|_| !self.wt.is_empty()) {
-            transpose_weights(&self.param, shape, &mut self.wt);
-        }
-    }
-
-    /// Swaps the slot's vectors with tensor `self.index`'s in the learner: moves them out of an
-    /// empty slot, and back from a filled one.
-    fn swap(&mut self, mlp: &mut Mlp, grads: &mut MlpGrads, opt: &mut Adam, t: &mut MlpTransposed) {
-        let i = self.index;
-        std::mem::swap(&mut self.param, mlp.tensor_vec_mut(i));
-        std::mem::swap(&mut self.grad, grads.tensor_vec_mut(i));
-        let (m, v) = opt.moments_mut(i);
-        std::mem::swap(&mut self.m, m);
-        std::mem::swap(&mut self.v, v);
-        if self.shape.is_some() {
-            std::mem::swap(&mut self.wt, t.tensor_vec_mut(i));
-        }
-    }
-}
-
-/// One thread's share of an optimiser step of `net`: runs `slots` on the gradients of `chunks`.
-/// Each chunk is locked once, for reading, so the threads of a step read the chunks at the same
-/// time instead of taking turns.
-fn run_share(slots: &mut [StepSlot], net: Net, sizes: StepSizes, chunks: &[RwLock<Chunk>]) {
-    let guards: [Option<RwLockReadGuard<'_, Chunk>>; GRADIENT_CHUNKS] =
-        std::array::from_fn(|k| chunks.get(k).map(read));
-    for slot in slots {
-        slot.run(sizes, guards.iter().flatten().map(|chunk| chunk.grads(net)));
     }
 }
 
 /// Locks a chunk to change it: each chunk of a part goes to one thread. A lock is poisoned
 /// only by a panic in an update, which the learner's owner has seen already (the thread that
 /// started that update panicked too).
-fn write(chunk: &RwLock<Chunk>) -> RwLockWriteGuard<'_, Chunk> {
+fn write<T>(chunk: &RwLock<T>) -> RwLockWriteGuard<'_, T> {
     chunk
         .write()
         .expect("learner: a chunk was left by a panicked update")
 }
 
 /// Locks a chunk to read its results, beside other readers.
-fn read(chunk: &RwLock<Chunk>) -> RwLockReadGuard<'_, Chunk> {
+fn read<T>(chunk: &RwLock<T>) -> RwLockReadGuard<'_, T> {
     chunk
         .read()
         .expect("learner: a chunk was left by a panicked update")
 }
 
-/// The model, to change: between the parts of an update no worker thread holds it.
-fn exclusive(model: &mut Arc<Model>) -> &mut Model {
-    Arc::get_mut(model).expect("learner: a worker thread still holds the model")
+/// One optimiser step of `mlp` by `opt` from the gradients of `chunks`, tensor by tensor: the
+/// tensor's gradient summed over the chunks in chunk order into `grads`, the Adam step, and the
+/// kept transpose in `transposes` refreshed. Each chunk is locked once, for reading, so every
+/// thread reads the chunks at the same time.
+fn optimiser_step<C>(
+    mlp: &mut Mlp,
+    grads: &mut MlpGrads,
+    opt: &mut Adam,
+    transposes: &mut MlpTransposed,
+    chunks: &[RwLock<C>],
+    chunk_grads: impl Fn(&C) -> &MlpGrads,
+) {
+    let guards: [Option<RwLockReadGuard<'_, C>>; GRADIENT_CHUNKS] =
+        std::array::from_fn(|k| chunks.get(k).map(read));
+    let sizes = opt.begin_step();
+    for i in 0..mlp.tensor_count() {
+        let sum = grads.tensor_mut(i);
+        for (k, chunk) in guards.iter().flatten().enumerate() {
+            let g = chunk_grads(chunk).tensor(i);
+            if k == 0 {
+                sum.copy_from_slice(g);
+            } else {
+                add_assign(sum, g);
+            }
+        }
+        let (m, v) = opt.moments_mut(i);
+        sizes.apply(mlp.tensor_mut(i), sum, m, v);
+        if let Some(shape) = mlp.weight_shape(i) {
+            let wt = transposes.tensor_mut(i);
+            if !wt.is_empty() {
+                transpose_weights(mlp.tensor_mut(i), shape, wt);
+            }
+        }
+    }
 }
 
-impl Model {
-    /// Runs `part` of the update on chunk `k` of `chunks`, in the calling thread's `scratch`.
-    fn run_chunk(
-        &self,
-        part: Part,
-        scratch: &mut Scratch,
-        chunk: &mut Chunk,
-        k: usize,
-        chunks: usize,
-    ) {
-        let all = self.batch.fields();
-        let samples = all.part(self.config.dims, chunk_samples(k, chunks, all.len));
-        scratch.actor_ws.set_batch(samples.len);
-        scratch.critic_ws.set_batch(samples.len);
-        match part {
-            Part::Critic => {
-                self.set_targets(scratch, chunk, &samples);
-                self.critic_gradient(scratch, chunk, &samples, all.len);
-            }
-            Part::Actor => self.actor_gradient(scratch, chunk, &samples, all.len),
+impl Nets {
+    /// Fresh optimisers and transposes for `actor` and `critic`, and target networks copied
+    /// from them when `config` has them.
+    fn new(config: &LearnerConfig, actor: ActorNet, critic: CriticNet) -> Self {
+        let lens = |m: &Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
+        Self {
+            targets: config.target_tau.map(|tau| Targets {
+                actor: actor.clone(),
+                critic: critic.clone(),
+                tau,
+            }),
+            actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
+            critic_opt: Adam::new(config.critic_lr, lens(critic.mlp())),
+            actor_grads: MlpGrads::new(actor.mlp()),
+            critic_grads: MlpGrads::new(critic.mlp()),
+            actor_t: MlpTransposed::new(actor.mlp()),
+            critic_t: MlpTransposed::new(critic.mlp()),
+            actor,
+            critic,
         }
     }
 
-    /// Sets `scratch.y` to the clipped bootstrap targets of `samples`, and `chunk.target_sum`.
-    fn set_targets(&self, scratch: &mut Scratch, chunk: &mut Chunk, samples: &Fields<'_>) {
-        let exact = self.config.exact_critic_slope;
+    /// The critic part of chunk `k` of `chunks` of the minibatch `all`: the targets and the
+    /// critic's gradient, into `out`.
+    fn critic_chunk(
+        &self,
+        config: &LearnerConfig,
+        scratch: &mut Scratch,
+        out: &mut CriticChunk,
+        all: &Fields<'_>,
+        (k, chunks): (usize, usize),
+    ) {
+        let samples = all.part(config.dims, chunk_samples(k, chunks, all.len));
+        scratch.actor_ws.set_batch(samples.len);
+        scratch.critic_ws.set_batch(samples.len);
+        self.set_targets(config, scratch, out, &samples);
+        self.critic_gradient(config, scratch, out, &samples, all.len);
+    }
+
+    /// The actor part of chunk `k` of `chunks` of the minibatch `all`: the actor's gradient
+    /// through the updated critic, into `out`.
+    fn actor_chunk(
+        &self,
+        config: &LearnerConfig,
+        scratch: &mut Scratch,
+        out: &mut ActorChunk,
+        all: &Fields<'_>,
+        (k, chunks): (usize, usize),
+    ) {
+        let samples = all.part(config.dims, chunk_samples(k, chunks, all.len));
+        scratch.actor_ws.set_batch(samples.len);
+        scratch.critic_ws.set_batch(samples.len);
+        self.actor_gradient(config, scratch, out, &samples, all.len);
+    }
+
+    /// Sets `scratch.y` to the clipped bootstrap targets of `samples`, and `out.target_sum`.
+    fn set_targets(
+        &self,
+        config: &LearnerConfig,
+        scratch: &mut Scratch,
+        out: &mut CriticChunk,
+        samples: &Fields<'_>,
+    ) {
+        let exact = config.exact_critic_slope;
         let (actor, critic) = match &self.targets {
             Some(t) => (&t.actor, &t.critic),
             None => (&self.actor, &self.critic),
@@ -569,7 +577,7 @@ impl Model {
         actor.write_actions(actor_ws, critic_ws.input_mut(), rows, action_row);
         critic.forward_batch(critic_ws, exact);
 
-        let (h, gamma) = (self.config.horizon, self.config.gamma);
+        let (h, gamma) = (config.horizon, config.gamma);
         y.resize(samples.len, 0.0);
         let mut sum = 0.0;
         for (((y, &q), &r), &terminal) in y
@@ -581,20 +589,21 @@ impl Model {
             *y = (r + gamma * (1.0 - terminal) * q).clamp(-h, 0.0);
             sum += *y;
         }
-        chunk.target_sum = sum;
+        out.target_sum = sum;
     }
 
-    /// Sets `chunk.critic_grads` to this chunk's part of the gradient of the critic's mean
-    /// squared error to `scratch.y` over a minibatch of `len` samples, and the chunk's sums of
-    /// squared errors and of `Q`.
+    /// Sets `out.grads` to this chunk's part of the gradient of the critic's mean squared error
+    /// to `scratch.y` over a minibatch of `len` samples, and the chunk's sums of squared errors
+    /// and of `Q`.
     fn critic_gradient(
         &self,
+        config: &LearnerConfig,
         scratch: &mut Scratch,
-        chunk: &mut Chunk,
+        out: &mut CriticChunk,
         samples: &Fields<'_>,
         len: usize,
     ) {
-        let exact = self.config.exact_critic_slope;
+        let exact = config.exact_critic_slope;
         let critic = &self.critic;
         let ws = &mut scratch.critic_ws;
         critic.fill_state_goal(ws, samples.states, samples.goals);
@@ -609,12 +618,11 @@ impl Model {
             q_sum += q;
             *dq = 2.0 * err * inv_n;
         }
-        let grads = Some(&mut chunk.critic_grads);
-        critic.backward_batch(ws, grads, false, Some(&self.critic_t));
-        (chunk.sq_err_sum, chunk.q_sum) = (sq_err_sum, q_sum);
+        critic.backward_batch(ws, Some(&mut out.grads), false, Some(&self.critic_t));
+        (out.sq_err_sum, out.q_sum) = (sq_err_sum, q_sum);
     }
 
-    /// Sets `chunk.actor_grads` to this chunk's part of the gradient of the actor's loss
+    /// Sets `out.grads` to this chunk's part of the gradient of the actor's loss
     /// `-mean Q(s, g, pi(s, g))` over a minibatch of `len` samples, which reaches the actor
     /// through the critic's action input, and the chunk's sum of `Q`.
     ///
@@ -625,14 +633,15 @@ impl Model {
     /// only this one moves the actor.
     fn actor_gradient(
         &self,
+        config: &LearnerConfig,
         scratch: &mut Scratch,
-        chunk: &mut Chunk,
+        out: &mut ActorChunk,
         samples: &Fields<'_>,
         len: usize,
     ) {
-        let exact = self.config.exact_critic_slope;
+        let exact = config.exact_critic_slope;
         let (actor, critic) = (&self.actor, &self.critic);
-        let c = self.config.actor_preactivation_l2;
+        let c = config.actor_preactivation_l2;
         let Scratch {
             actor_ws,
             critic_ws,
@@ -661,36 +670,44 @@ impl Model {
             .output_grad_mut()
             .copy_from_slice(critic_ws.input_grad());
         let penalty = (c > 0.0).then_some((actor_pre.as_slice(), c, len));
-        actor.backward_batch(
-            actor_ws,
-            &mut chunk.actor_grads,
-            penalty,
-            Some(&self.actor_t),
+        actor.backward_batch(actor_ws, &mut out.grads, penalty, Some(&self.actor_t));
+        out.policy_q_sum = q_sum;
+    }
+
+    /// The critic's optimiser step from the first `count` chunks' gradients.
+    fn step_critic(&mut self, chunks: &Chunks, count: usize) {
+        let mlp = self.critic.mlp_mut();
+        let chunks = &chunks.critic[..count];
+        let (grads, opt, t) = (
+            &mut self.critic_grads,
+            &mut self.critic_opt,
+            &mut self.critic_t,
         );
-        chunk.policy_q_sum = q_sum;
+        optimiser_step(mlp, grads, opt, t, chunks, |c| &c.grads);
+    }
+
+    /// The actor's optimiser step from the first `count` chunks' gradients.
+    fn step_actor(&mut self, chunks: &Chunks, count: usize) {
+        let mlp = self.actor.mlp_mut();
+        let chunks = &chunks.actor[..count];
+        let (grads, opt, t) = (
+            &mut self.actor_grads,
+            &mut self.actor_opt,
+            &mut self.actor_t,
+        );
+        optimiser_step(mlp, grads, opt, t, chunks, |c| &c.grads);
+    }
+
+    /// The target networks' Polyak step toward the networks, when there are target networks.
+    fn polyak(&mut self) {
+        if let Some(t) = &mut self.targets {
+            t.actor.mlp_mut().polyak_toward(self.actor.mlp(), t.tau);
+            t.critic.mlp_mut().polyak_toward(self.critic.mlp(), t.tau);
+        }
     }
 }
 
-/// A part of an update for a worker thread: chunks `chunks` of `of`.
-enum Job {
-    /// `part` of an update on the run `chunks` of its `of` chunks.
-    Chunks {
-        part: Part,
-        model: Arc<Model>,
-        chunks: Range<usize>,
-        of: usize,
-    },
-    /// The optimiser step of `net` on the tensors of `slots`, from the first `of` chunks'
-    /// gradients; the slots are sent back.
-    Step {
-        net: Net,
-        sizes: StepSizes,
-        slots: Vec<StepSlot>,
-        of: usize,
-    },
-}
-
-/// How long a thread of a multi-threaded update waits for its counterpart by spinning before it
+/// How long a thread of a multi-threaded update waits for the others by spinning before it
 /// parks (sleeps in the kernel until woken). The serial part between two updates' chunk parts
 /// takes about 50-100 microseconds, so a worker that parked sooner (after 50 us, as it once
 /// did) was asleep at the start of every update and paid a wake-up, which is slow on a virtual
@@ -718,74 +735,213 @@ fn recv_spinning<T>(rx: &Receiver<T>) -> Result<T, RecvError> {
     }
 }
 
+/// The learner's threads can no longer meet at the [`Gate`]: one of them panicked, or the
+/// learner is stopping its workers.
+#[derive(Debug)]
+struct Stopped;
+
+/// Where the threads of an update wait for each other: after the critic part (whose gradients
+/// every thread's critic step sums) and after the actor part. Each thread counts the times it
+/// has passed; the `p`-th pass lets a thread through once all `threads` have arrived `p` times.
+/// A waiting thread spins up to [`SPIN_BEFORE_PARKING`], then sleeps until the last to arrive
+/// wakes it.
+#[derive(Debug)]
+struct Gate {
+    threads: u64,
+    /// Arrivals since the gate was made, by all threads.
+    arrived: AtomicU64,
+    stopped: AtomicBool,
+    lock: Mutex<()>,
+    wake: Condvar,
+}
+
+impl Gate {
+    fn new(threads: usize) -> Self {
+        Self {
+            threads: threads as u64,
+            arrived: AtomicU64::new(0),
+            stopped: AtomicBool::new(false),
+            lock: Mutex::new(()),
+            wake: Condvar::new(),
+        }
+    }
+
+    /// Arrives for the `pass`-th time (from 1) and returns once every thread has.
+    fn pass(&self, pass: u64) -> Result<(), Stopped> {
+        let all = pass * self.threads;
+        if self.arrived.fetch_add(1, Ordering::AcqRel) + 1 == all {
+            self.wake_all();
+            return Ok(());
+        }
+        let start = Instant::now();
+        while self.arrived.load(Ordering::Acquire) < all {
+            if self.stopped.load(Ordering::Acquire) {
+                return Err(Stopped);
+            }
+            if start.elapsed() >= SPIN_BEFORE_PARKING {
+                // Checked again under the lock, which the last to arrive takes before waking
+                // the sleepers: it cannot wake them between the check and the sleep.
+                let mut guard = self.lock.lock().unwrap_or_else(PoisonError::into_inner);
+                while self.arrived.load(Ordering::Acquire) < all
+                    && !self.stopped.load(Ordering::Acquire)
+                {
+                    guard = self
+                        .wake
+                        .wait(guard)
+                        .unwrap_or_else(PoisonError::into_inner);
+                }
+                break;
+            }
+            std::hint::spin_loop();
+        }
+        if self.stopped.load(Ordering::Acquire) && self.arrived.load(Ordering::Acquire) < all {
+            return Err(Stopped);
+        }
+        Ok(())
+    }
+
+    /// Stops the gate: every thread waiting at it, or coming to it, gets [`Stopped`].
+    fn stop(&self) {
+        self.stopped.store(true, Ordering::Release);
+        self.wake_all();
+    }
+
+    fn wake_all(&self) {
+        drop(self.lock.lock().unwrap_or_else(PoisonError::into_inner));
+        self.wake.notify_all();
+    }
+}
+
+/// Stops its gate if the worker thread that holds it panics, so that the others do not wait
+/// for it forever.
+struct StopOnPanic(Arc<Gate>);
+
+impl Drop for StopOnPanic {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.0.stop();
+        }
+    }
+}
+
+/// What a worker thread is sent.
+enum Job {
+    /// An update of the minibatch `batch` cut into `of` chunks, the run `chunks` of them the
+    /// worker's: the critic part on those chunks, the gate, the critic's optimiser step, the
+    /// actor part, the gate, the actor's step and the Polyak step, all on its own copy.
+    Update {
+        batch: Arc<BatchCopy>,
+        chunks: Range<usize>,
+        of: usize,
+    },
+    /// The learner's state changed outside an update (a restore): the worker's copy is
+    /// replaced.
+    Copy(Box<Nets>),
+}
+
 /// A worker thread of a level's learner, waiting for jobs.
 struct Worker {
     jobs: SyncSender<Job>,
-    /// A job is done: the slots of a step, or none.
-    done: Receiver<Vec<StepSlot>>,
     thread: JoinHandle<()>,
 }
 
 /// The worker threads of one learner: they live as long as it (or until its thread count
 /// changes), so an update starts no thread.
+///
+/// Each worker keeps its own copy of everything an update changes ([`Nets`]) and takes every
+/// optimiser step itself, whole, on the summed gradients of all the chunks: the threads share
+/// the chunk parts, and each reads the others' chunk gradients, but no thread writes a weight,
+/// moment or transpose that another reads. Sharing the steps instead, tensor by tensor, made
+/// each core write lines the other had just read (the networks, their transposes), and
+/// between distant cores those writes made the steps 3-4 times as slow (docs/RESULTS.md, "What
+/// the slow mode slows"). It also halves the meetings per update, from four hand-offs to the
+/// two passes of the [`Gate`].
 struct Pool {
     workers: Vec<Worker>,
+    gate: Arc<Gate>,
+    /// The learner's passes of the gate so far.
+    passes: u64,
+    /// The workers' copies are out of date: they get the learner's before the next update.
+    stale: bool,
 }
 
 impl Pool {
-    /// Starts `workers` threads for the chunks of `model`'s updates, each with its own scratch.
-    fn new(workers: usize, chunks: &Arc<[RwLock<Chunk>]>, model: &Model) -> Self {
+    /// Starts `workers` threads for the updates of a learner configured by `config`, each with
+    /// its own copy of `nets` and its own scratch, reading and writing `chunks`.
+    fn new(workers: usize, chunks: &Arc<Chunks>, config: &LearnerConfig, nets: &Nets) -> Self {
+        let gate = Arc::new(Gate::new(workers + 1));
         let workers = (0..workers)
             .map(|_| {
                 let (jobs, job_rx) = mpsc::sync_channel::<Job>(1);
-                let (done_tx, done) = mpsc::sync_channel(1);
                 let chunks = Arc::clone(chunks);
-                let mut scratch = Scratch::new(&model.actor, &model.critic);
+                let stop_on_panic = StopOnPanic(Arc::clone(&gate));
+                let config = config.clone();
+                let mut nets = nets.clone();
+                let mut scratch = Scratch::new(&nets.actor, &nets.critic);
                 let thread = std::thread::Builder::new()
                     .name("learner-worker".into())
                     .spawn(move || {
+                        let gate = &stop_on_panic.0;
+                        let mut passes = 0;
                         while let Ok(job) = recv_spinning(&job_rx) {
-                            let back = match job {
-                                Job::Chunks {
-                                    part,
-                                    model,
-                                    chunks: run,
-                                    of,
-                                } => {
-                                    for k in run {
-                                        let chunk = &mut write(&chunks[k]);
-                                        model.run_chunk(part, &mut scratch, chunk, k, of);
-                                    }
-                                    // The model is released before the learner hears the job
-                                    // is done.
-                                    Vec::new()
+                            let (batch, run, of) = match job {
+                                Job::Copy(copy) => {
+                                    nets = *copy;
+                                    continue;
                                 }
-                                Job::Step {
-                                    net,
-                                    sizes,
-                                    mut slots,
-                                    of,
-                                } => {
-                                    run_share(&mut slots, net, sizes, &chunks[..of]);
-                                    slots
-                                }
+                                Job::Update { batch, chunks, of } => (batch, chunks, of),
                             };
-                            if done_tx.send(back).is_err() {
+                            let all = batch.fields();
+                            for k in run.clone() {
+                                let out = &mut write(&chunks.critic[k]);
+                                nets.critic_chunk(&config, &mut scratch, out, &all, (k, of));
+                            }
+                            passes += 1;
+                            if gate.pass(passes).is_err() {
                                 break;
                             }
+                            nets.step_critic(&chunks, of);
+                            for k in run {
+                                let out = &mut write(&chunks.actor[k]);
+                                nets.actor_chunk(&config, &mut scratch, out, &all, (k, of));
+                            }
+                            // The minibatch is let go before the gate, after which the learner
+                            // may copy the next one in.
+                            drop(batch);
+                            passes += 1;
+                            if gate.pass(passes).is_err() {
+                                break;
+                            }
+                            nets.step_actor(&chunks, of);
+                            nets.polyak();
                         }
                     })
                     .expect("learner: spawning a worker thread");
-                Worker { jobs, done, thread }
+                Worker { jobs, thread }
             })
             .collect();
-        Self { workers }
+        Self {
+            workers,
+            gate,
+            passes: 0,
+            stale: false,
+        }
+    }
+
+    /// The learner's next pass of the gate.
+    fn pass(&mut self) {
+        self.passes += 1;
+        self.gate
+            .pass(self.passes)
+            .expect("learner: a worker thread panicked");
     }
 }
 
 impl Drop for Pool {
     fn drop(&mut self) {
-        for Worker { jobs, thread, .. } in self.workers.drain(..) {
+        // Workers waiting at the gate for an update the learner abandoned (it panicked) stop.
+        self.gate.stop();
+        for Worker { jobs, thread } in self.workers.drain(..) {
             drop(jobs);
             // A worker that panicked did so in an update, whose caller panicked with it.
             let _ = thread.join();
@@ -801,36 +957,42 @@ impl std::fmt::Debug for Pool {
     }
 }
 
+/// Waits at the gate of `pool` until every worker has finished its share of the part under
+/// way, adding the wait to `timing` (nothing to wait for on one thread).
+fn meet(pool: &mut Option<Pool>, timing: &mut UpdateTiming) {
+    if let Some(pool) = pool {
+        let own_done = Instant::now();
+        pool.pass();
+        timing.waiting += own_done.elapsed();
+    }
+}
+
 /// Learns one level's actor and critic from minibatches. Owns every buffer an update needs, so
 /// updates at a steady batch size allocate nothing in this crate.
 ///
 /// An update cuts its minibatch into chunks (by its size alone, see [`MIN_CHUNK_SAMPLES`]) and
-/// sums their gradients in a fixed order; with [`LevelLearner::set_threads`] the chunks are shared among that many
-/// threads (the caller's and workers started once), with bit-identical results.
+/// sums their gradients in a fixed order; with [`LevelLearner::set_threads`] the chunks are
+/// shared among that many threads (the caller's and workers started once), with bit-identical
+/// results.
 #[derive(Debug)]
 pub struct LevelLearner {
-    model: Arc<Model>,
-    actor_opt: Adam,
-    critic_opt: Adam,
-    /// The chunks' results; a worker thread locks the chunks it was given.
-    chunks: Arc<[RwLock<Chunk>]>,
+    config: LearnerConfig,
+    nets: Nets,
+    /// The minibatch of the update under way, copied in so that the workers can read it; they
+    /// let it go before the update's last pass of the gate.
+    batch: Arc<BatchCopy>,
+    /// The chunks' results.
+    chunks: Arc<Chunks>,
     /// The scratch of the calling thread's chunks (each worker keeps its own).
     scratch: Scratch,
-    /// The summed gradients.
-    actor_grads: MlpGrads,
-    critic_grads: MlpGrads,
-    /// For each thread, the slots of its share of an optimiser step: filled and emptied by
-    /// each step, kept so that steps allocate nothing.
-    step_slots: Vec<Vec<StepSlot>>,
     pool: Option<Pool>,
     /// Where the updates' time went, since the learner was built or the timing reset.
     timing: UpdateTiming,
 }
 
 /// Where a learner's update time went ([`LevelLearner::timing`]), summed over `updates`
-/// updates: the share no second thread can take (everything outside the chunk parts and the
-/// optimiser steps) bounds what more threads can give, and `waiting` shows how evenly the
-/// threads finish.
+/// updates: the share no second thread can take (everything outside the chunk parts) bounds
+/// what more threads can give, and `waiting` shows how evenly the threads finish.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct UpdateTiming {
     /// Updates timed.
@@ -838,15 +1000,15 @@ pub struct UpdateTiming {
     /// Their whole time.
     pub total: Duration,
     /// Of `total`, the parts shared among the threads: the two chunk parts (critic, then
-    /// actor), from handing the chunks out to the last one done, and the two optimiser steps
-    /// (summing the chunks' gradients, Adam, refreshing the kept transposes), shared by tensor.
-    /// The rest is serial: copying the minibatch in, the chunks' statistics and the target
-    /// networks' Polyak step.
+    /// actor), from handing the chunks out to the last one done. The rest is serial: copying
+    /// the minibatch in, the chunks' statistics, the two optimiser steps (which every thread
+    /// takes whole, on its own copy of the networks) and the target networks' Polyak step.
     pub parallel: Duration,
     /// Of `parallel`, the calling thread idle after its own share, waiting for the workers'
     /// (zero on one thread).
     pub waiting: Duration,
-    /// Of `parallel`, the two optimiser steps.
+    /// Of the serial time, the two optimiser steps: summing the chunks' gradients, Adam,
+    /// refreshing the kept transposes.
     pub steps: Duration,
 }
 
@@ -863,15 +1025,11 @@ impl Clone for LevelLearner {
     /// checkpoint's snapshot is a clone that never updates. Scratch buffers are not copied.
     fn clone(&self) -> Self {
         let mut copy = Self::assemble(
-            self.model.config.clone(),
-            self.model.actor.clone(),
-            self.model.critic.clone(),
+            self.config.clone(),
+            self.nets.actor.clone(),
+            self.nets.critic.clone(),
         );
-        exclusive(&mut copy.model)
-            .targets
-            .clone_from(&self.model.targets);
-        copy.actor_opt = self.actor_opt.clone();
-        copy.critic_opt = self.critic_opt.clone();
+        copy.nets.clone_from(&self.nets);
         copy
     }
 }
@@ -889,31 +1047,12 @@ impl LevelLearner {
     }
 
     fn assemble(config: LearnerConfig, actor: ActorNet, critic: CriticNet) -> Self {
-        let lens = |m: &Mlp| m.tensors().map(<[f32]>::len).collect::<Vec<_>>();
-        let targets = config.target_tau.map(|tau| Targets {
-            actor: actor.clone(),
-            critic: critic.clone(),
-            tau,
-        });
         Self {
-            actor_opt: Adam::new(config.actor_lr, lens(actor.mlp())),
-            critic_opt: Adam::new(config.critic_lr, lens(critic.mlp())),
-            chunks: (0..GRADIENT_CHUNKS)
-                .map(|_| RwLock::new(Chunk::new(&actor, &critic)))
-                .collect(),
+            chunks: Arc::new(Chunks::new(&actor, &critic)),
             scratch: Scratch::new(&actor, &critic),
-            actor_grads: MlpGrads::new(actor.mlp()),
-            critic_grads: MlpGrads::new(critic.mlp()),
-            step_slots: vec![Vec::new()],
-            model: Arc::new(Model {
-                config,
-                actor_t: MlpTransposed::new(actor.mlp()),
-                critic_t: MlpTransposed::new(critic.mlp()),
-                actor,
-                critic,
-                targets,
-                batch: BatchCopy::default(),
-            }),
+            nets: Nets::new(&config, actor, critic),
+            config,
+            batch: Arc::default(),
             pool: None,
             timing: UpdateTiming::default(),
         }
@@ -933,7 +1072,8 @@ impl LevelLearner {
 
     /// Shares each update among `threads` threads: the caller's and `threads - 1` workers that
     /// this learner starts now and keeps (at most [`GRADIENT_CHUNKS`] in all; more would have
-    /// nothing to do). The weights do not depend on it.
+    /// nothing to do), each with a copy of the networks and optimisers. The weights do not
+    /// depend on it.
     ///
     /// Panics if `threads` is 0.
     pub fn set_threads(&mut self, threads: usize) {
@@ -941,8 +1081,8 @@ impl LevelLearner {
         let threads = threads.min(GRADIENT_CHUNKS);
         if threads != self.threads() {
             self.pool = None;
-            self.pool = (threads > 1).then(|| Pool::new(threads - 1, &self.chunks, &self.model));
-            self.step_slots.resize_with(threads, Vec::new);
+            self.pool = (threads > 1)
+                .then(|| Pool::new(threads - 1, &self.chunks, &self.config, &self.nets));
         }
     }
 
@@ -953,27 +1093,27 @@ impl LevelLearner {
 
     /// The configuration the learner was built from.
     pub fn config(&self) -> &LearnerConfig {
-        &self.model.config
+        &self.config
     }
 
     /// The current actor; clone it to hand the policy to a rollout or ship its weights.
     pub fn actor(&self) -> &ActorNet {
-        &self.model.actor
+        &self.nets.actor
     }
 
     /// The current critic.
     pub fn critic(&self) -> &CriticNet {
-        &self.model.critic
+        &self.nets.critic
     }
 
     /// Updates done so far.
     pub fn updates(&self) -> u64 {
-        self.actor_opt.steps()
+        self.nets.actor_opt.steps()
     }
 
     /// The greedy action `pi(state, goal)`, written into `out`.
     pub fn act(&mut self, state: &[f32], goal: &[f32], out: &mut [f32]) {
-        exclusive(&mut self.model).actor.act(state, goal, out);
+        self.nets.actor.act(state, goal, out);
     }
 
     /// One critic step, then one actor step, on `batch`.
@@ -989,157 +1129,93 @@ impl LevelLearner {
     /// Panics if the batch is empty, its dimensions are not this level's, or a field is short.
     pub fn update(&mut self, batch: &Batch) -> UpdateStats {
         assert_eq!(
-            batch.dims,
-            self.config().dims,
+            batch.dims, self.config.dims,
             "learner: batch dimensions differ from the level's"
         );
         let start = Instant::now();
         let fields = Fields::new(batch);
         let n = fields.len;
-        exclusive(&mut self.model).batch.set(&fields);
+        Arc::get_mut(&mut self.batch)
+            .expect("learner: a worker thread still holds the minibatch")
+            .set(&fields);
         let chunks = chunk_count(n);
         let inv_n = 1.0 / n as f32;
+        // The chunks go to the first threads, a run of consecutive ones each; with fewer chunks
+        // than threads the last threads have none but still take the optimiser steps.
+        let busy = self.threads().min(chunks);
+        let share =
+            |t: usize| (t * chunks / busy).min(chunks)..((t + 1) * chunks / busy).min(chunks);
+        if let Some(pool) = &mut self.pool {
+            for (t, worker) in pool.workers.iter().enumerate() {
+                if pool.stale {
+                    let copy = Job::Copy(Box::new(self.nets.clone()));
+                    worker
+                        .jobs
+                        .send(copy)
+                        .expect("learner: a worker thread has stopped");
+                }
+                let job = Job::Update {
+                    batch: Arc::clone(&self.batch),
+                    chunks: share(t + 1),
+                    of: chunks,
+                };
+                worker
+                    .jobs
+                    .send(job)
+                    .expect("learner: a worker thread has stopped");
+            }
+            pool.stale = false;
+        }
 
-        self.run(Part::Critic, chunks);
+        let parallel = Instant::now();
+        let all = self.batch.fields();
+        for k in share(0) {
+            let out = &mut write(&self.chunks.critic[k]);
+            let scratch = &mut self.scratch;
+            self.nets
+                .critic_chunk(&self.config, scratch, out, &all, (k, chunks));
+        }
+        meet(&mut self.pool, &mut self.timing);
+        let mut took = parallel.elapsed();
         let (mut target_sum, mut sq_err_sum, mut q_sum) = (0.0, 0.0, 0.0);
-        for chunk in &self.chunks[..chunks] {
+        for chunk in &self.chunks.critic[..chunks] {
             let chunk = read(chunk);
             target_sum += chunk.target_sum;
             sq_err_sum += chunk.sq_err_sum;
             q_sum += chunk.q_sum;
         }
-        self.step(Net::Critic, chunks);
+        let step = Instant::now();
+        self.nets.step_critic(&self.chunks, chunks);
+        let mut steps = step.elapsed();
 
-        self.run(Part::Actor, chunks);
-        let policy_q_sum: f32 = self.chunks[..chunks]
+        let parallel = Instant::now();
+        for k in share(0) {
+            let out = &mut write(&self.chunks.actor[k]);
+            let scratch = &mut self.scratch;
+            self.nets
+                .actor_chunk(&self.config, scratch, out, &all, (k, chunks));
+        }
+        meet(&mut self.pool, &mut self.timing);
+        took += parallel.elapsed();
+        let policy_q_sum: f32 = self.chunks.actor[..chunks]
             .iter()
             .map(|chunk| read(chunk).policy_q_sum)
             .sum();
-        self.step(Net::Actor, chunks);
+        let step = Instant::now();
+        self.nets.step_actor(&self.chunks, chunks);
+        steps += step.elapsed();
+        self.nets.polyak();
 
-        let model = exclusive(&mut self.model);
-        if let Some(t) = &mut model.targets {
-            t.actor.mlp_mut().polyak_toward(model.actor.mlp(), t.tau);
-            t.critic.mlp_mut().polyak_toward(model.critic.mlp(), t.tau);
-        }
         self.timing.updates += 1;
         self.timing.total += start.elapsed();
+        self.timing.parallel += took;
+        self.timing.steps += steps;
         UpdateStats {
             critic_loss: sq_err_sum * inv_n,
             actor_loss: -policy_q_sum * inv_n,
             mean_q: q_sum * inv_n,
             mean_target: target_sum / n as f32,
         }
-    }
-
-    /// Runs `part` of an update on its `chunks` chunks: the first share on this thread, the
-    /// others on the workers, each share a run of consecutive chunks.
-    fn run(&mut self, part: Part, chunks: usize) {
-        let start = Instant::now();
-        let workers = self.pool.as_ref().map_or(&[][..], |p| &p.workers[..]);
-        let threads = (workers.len() + 1).min(chunks);
-        let share = |t: usize| t * chunks / threads..(t + 1) * chunks / threads;
-        let helpers = &workers[..threads - 1];
-        for (t, worker) in helpers.iter().enumerate() {
-            let job = Job::Chunks {
-                part,
-                model: Arc::clone(&self.model),
-                chunks: share(t + 1),
-                of: chunks,
-            };
-            worker
-                .jobs
-                .send(job)
-                .expect("learner: a worker thread has stopped");
-        }
-        for k in share(0) {
-            let chunk = &mut write(&self.chunks[k]);
-            self.model
-                .run_chunk(part, &mut self.scratch, chunk, k, chunks);
-        }
-        if !helpers.is_empty() {
-            let own_done = Instant::now();
-            for worker in helpers {
-                recv_spinning(&worker.done).expect("learner: a worker thread panicked");
-            }
-            self.timing.waiting += own_done.elapsed();
-        }
-        self.timing.parallel += start.elapsed();
-    }
-
-    /// The optimiser step of `net` from the gradients of the first `chunks` chunks: summing
-    /// them, the Adam step and refreshing the kept transposes, shared among the threads by
-    /// tensor. Each tensor goes to the thread whose share of the network's parameters holds its
-    /// middle, so the shares are whole tensors of about equal size, the same ones every step.
-    fn step(&mut self, net: Net, chunks: usize) {
-        let start = Instant::now();
-        let model = exclusive(&mut self.model);
-        let (mlp, grads, opt, transposes) = match net {
-            Net::Actor => (
-                model.actor.mlp_mut(),
-                &mut self.actor_grads,
-                &mut self.actor_opt,
-                &mut model.actor_t,
-            ),
-            Net::Critic => (
-                model.critic.mlp_mut(),
-                &mut self.critic_grads,
-                &mut self.critic_opt,
-                &mut model.critic_t,
-            ),
-        };
-        let sizes = opt.begin_step();
-        let threads = self.step_slots.len();
-        let total = mlp.param_count();
-        let mut offset = 0;
-        for index in 0..mlp.tensor_count() {
-            let mut slot = StepSlot {
-                index,
-                shape: mlp.weight_shape(index),
-                ..StepSlot::default()
-            };
-            slot.swap(mlp, grads, opt, transposes);
-            let len = slot.param.len();
-            let thread = ((offset + len / 2) * threads / total).min(threads - 1);
-            offset += len;
-            self.step_slots[thread].push(slot);
-        }
-
-        let workers = self.pool.as_ref().map_or(&[][..], |p| &p.workers[..]);
-        let (own, shares) = self
-            .step_slots
-            .split_first_mut()
-            .expect("learner: at least one thread steps");
-        // Every worker gets its share, empty or not (with more threads than tensors), and sends
-        // it back.
-        for (worker, slots) in workers.iter().zip(shares.iter_mut()) {
-            let job = Job::Step {
-                net,
-                sizes,
-                slots: std::mem::take(slots),
-                of: chunks,
-            };
-            worker
-                .jobs
-                .send(job)
-                .expect("learner: a worker thread has stopped");
-        }
-        run_share(own, net, sizes, &self.chunks[..chunks]);
-        if !workers.is_empty() {
-            let own_done = Instant::now();
-            for (worker, slots) in workers.iter().zip(shares.iter_mut()) {
-                *slots = recv_spinning(&worker.done).expect("learner: a worker thread panicked");
-            }
-            self.timing.waiting += own_done.elapsed();
-        }
-        for slots in &mut self.step_slots {
-            for mut slot in slots.drain(..) {
-                slot.swap(mlp, grads, opt, transposes);
-            }
-        }
-        let took = start.elapsed();
-        self.timing.parallel += took;
-        self.timing.steps += took;
     }
 
     /// [`update`](Self::update), undone if it diverged: when a statistic is not finite or a
@@ -1169,8 +1245,8 @@ impl LevelLearner {
         divergence(
             stats,
             [
-                ("actor parameter", self.model.actor.mlp()),
-                ("critic parameter", self.model.critic.mlp()),
+                ("actor parameter", self.nets.actor.mlp()),
+                ("critic parameter", self.nets.critic.mlp()),
             ],
         )
     }
@@ -1178,14 +1254,14 @@ impl LevelLearner {
     /// Everything an update changes, as mutable slices in a fixed order, and the two step
     /// counts.
     fn state_mut(&mut self) -> ([&mut u64; 2], Vec<&mut [f32]>) {
-        let (actor_steps, actor_moments) = self.actor_opt.state_mut();
-        let (critic_steps, critic_moments) = self.critic_opt.state_mut();
-        let model = exclusive(&mut self.model);
-        let mut slices: Vec<&mut [f32]> = model.actor.mlp_mut().tensors_mut().collect();
-        slices.extend(model.critic.mlp_mut().tensors_mut());
+        let nets = &mut self.nets;
+        let (actor_steps, actor_moments) = nets.actor_opt.state_mut();
+        let (critic_steps, critic_moments) = nets.critic_opt.state_mut();
+        let mut slices: Vec<&mut [f32]> = nets.actor.mlp_mut().tensors_mut().collect();
+        slices.extend(nets.critic.mlp_mut().tensors_mut());
         slices.extend(actor_moments);
         slices.extend(critic_moments);
-        if let Some(t) = &mut model.targets {
+        if let Some(t) = &mut nets.targets {
             slices.extend(t.actor.mlp_mut().tensors_mut());
             slices.extend(t.critic.mlp_mut().tensors_mut());
         }
@@ -1194,9 +1270,9 @@ impl LevelLearner {
 
     /// Copies everything an update changes into `backup`.
     pub fn save(&self, backup: &mut LearnerBackup) {
-        let (actor_steps, actor_moments) = self.actor_opt.state();
-        let (critic_steps, critic_moments) = self.critic_opt.state();
-        let model = &self.model;
+        let model = &self.nets;
+        let (actor_steps, actor_moments) = model.actor_opt.state();
+        let (critic_steps, critic_moments) = model.critic_opt.state();
         let targets = model
             .targets
             .iter()
@@ -1218,9 +1294,12 @@ impl LevelLearner {
     pub fn restore(&mut self, backup: &LearnerBackup) {
         let (mut steps, mut slices) = self.state_mut();
         backup.put_back(&mut steps, &mut slices);
-        let model = exclusive(&mut self.model);
-        model.actor_t.refresh(model.actor.mlp());
-        model.critic_t.refresh(model.critic.mlp());
+        let nets = &mut self.nets;
+        nets.actor_t.refresh(nets.actor.mlp());
+        nets.critic_t.refresh(nets.critic.mlp());
+        if let Some(pool) = &mut self.pool {
+            pool.stale = true;
+        }
     }
 
     /// The learner's whole state as a safetensors file: actor (`actor.*`, laid out as in
@@ -1230,11 +1309,12 @@ impl LevelLearner {
     pub fn to_safetensors(&self) -> Vec<u8> {
         let mut out = TensorWriter::default();
         out.meta("format".into(), FORMAT);
-        self.model.actor.write("actor.", &mut out);
-        self.model.critic.write("critic.", &mut out);
-        self.actor_opt.write("actor_adam.", &mut out);
-        self.critic_opt.write("critic_adam.", &mut out);
-        if let Some(t) = &self.model.targets {
+        let nets = &self.nets;
+        nets.actor.write("actor.", &mut out);
+        nets.critic.write("critic.", &mut out);
+        nets.actor_opt.write("actor_adam.", &mut out);
+        nets.critic_opt.write("critic_adam.", &mut out);
+        if let Some(t) = &nets.targets {
             t.actor.write("target_actor.", &mut out);
             t.critic.write("target_critic.", &mut out);
         }
@@ -1252,13 +1332,13 @@ impl LevelLearner {
         let critic = CriticNet::read("critic.", &file)?;
         check_matches(&config, &actor, &critic)?;
         let mut learner = Self::assemble(config, actor, critic);
-        learner.actor_opt.read("actor_adam.", &file)?;
-        learner.critic_opt.read("critic_adam.", &file)?;
-        let model = exclusive(&mut learner.model);
-        if let Some(t) = &mut model.targets {
+        let nets = &mut learner.nets;
+        nets.actor_opt.read("actor_adam.", &file)?;
+        nets.critic_opt.read("critic_adam.", &file)?;
+        if let Some(t) = &mut nets.targets {
             t.actor = ActorNet::read("target_actor.", &file)?.with_saturating_tanh(saturating);
             t.critic = CriticNet::read("target_critic.", &file)?;
-            check_matches(&model.config, &t.actor, &t.critic)?;
+            check_matches(&learner.config, &t.actor, &t.critic)?;
         }
         Ok(learner)
     }
@@ -1428,7 +1508,7 @@ mod tests {
                 .tensors()
                 .map(<[f32]>::len)
                 .collect();
-            exploding.actor_opt = Adam::new(1e30, lens);
+            exploding.nets.actor_opt = Adam::new(1e30, lens);
             let before = exploding.to_safetensors();
             let e = exploding
                 .update_or_undo(&random_batch(&mut rng, 64), &mut backup)
@@ -1562,19 +1642,9 @@ mod tests {
             },
             &mut rng,
         );
-        let actor_bias = exclusive(&mut learner.model)
-            .actor
-            .mlp_mut()
-            .tensors_mut()
-            .last()
-            .unwrap();
+        let actor_bias = learner.nets.actor.mlp_mut().tensors_mut().last().unwrap();
         actor_bias.fill(40.0);
-        let critic_bias = exclusive(&mut learner.model)
-            .critic
-            .mlp_mut()
-            .tensors_mut()
-            .last()
-            .unwrap();
+        let critic_bias = learner.nets.critic.mlp_mut().tensors_mut().last().unwrap();
         critic_bias.fill(1000.0);
         learner
     }
@@ -1642,7 +1712,7 @@ mod tests {
         let mut learner = LevelLearner::new(config(Some(tau)), &mut rng);
         let before = learner.critic().mlp().clone();
         learner.update(&random_batch(&mut rng, 64));
-        let targets = learner.model.targets.as_ref().expect("targets enabled");
+        let targets = learner.nets.targets.as_ref().expect("targets enabled");
         let after = learner.critic().mlp();
         for ((t, old), new) in targets
             .critic
@@ -1740,6 +1810,33 @@ mod tests {
         }
     }
 
+    /// Each worker keeps its own copy of the networks and optimisers: it must follow the
+    /// learner's through batches of changing size (threads with no chunk of their own still take
+    /// the steps) and through a restore, which changes the learner's state outside an update.
+    #[test]
+    fn worker_copies_follow_changing_batches_and_restores() {
+        let run = |threads: usize| {
+            let mut learner = LevelLearner::new(config(Some(0.05)), &mut Rng::seed_from(44));
+            learner.set_threads(threads);
+            let mut data = Rng::seed_from(45);
+            let mut backup = LearnerBackup::default();
+            for (i, len) in [1024, 100, 2048, 600, 1024, 1300].into_iter().enumerate() {
+                if i == 2 {
+                    learner.save(&mut backup);
+                }
+                learner.update(&random_batch(&mut data, len));
+                if i == 3 {
+                    learner.restore(&backup);
+                }
+            }
+            learner.to_safetensors()
+        };
+        let one = run(1);
+        for threads in [2, 4] {
+            assert!(one == run(threads), "{threads} threads");
+        }
+    }
+
     #[test]
     fn chunked_gradients_sum_to_the_whole_batch_gradient() {
         let cfg = LearnerConfig {
@@ -1753,39 +1850,42 @@ mod tests {
             learner.update(&random_batch(&mut rng, 256));
         }
         let batch = random_batch(&mut rng, 203);
-        let fields = Fields::new(&batch);
-        exclusive(&mut learner.model).batch.set(&fields);
-        let model = &learner.model;
-        let (actor, critic) = (model.actor.clone(), model.critic.clone());
-        let (mut whole, mut scratch) = (Chunk::new(&actor, &critic), Scratch::new(&actor, &critic));
-        model.run_chunk(Part::Critic, &mut scratch, &mut whole, 0, 1);
+        let all = Fields::new(&batch);
+        let (cfg, nets) = (&learner.config, &learner.nets);
+        let mut scratch = Scratch::new(&nets.actor, &nets.critic);
+        let whole = Chunks::new(&nets.actor, &nets.critic);
+        let (whole_critic, whole_actor) =
+            (&mut write(&whole.critic[0]), &mut write(&whole.actor[0]));
+        nets.critic_chunk(cfg, &mut scratch, whole_critic, &all, (0, 1));
         let whole_y = scratch.y.clone();
-        model.run_chunk(Part::Actor, &mut scratch, &mut whole, 0, 1);
+        nets.actor_chunk(cfg, &mut scratch, whole_actor, &all, (0, 1));
         // The chunks run one after the other through one scratch, as on a thread; the actor part
         // starts after the last chunk's critic part has left its rows in the scratch.
-        let mut chunks: Vec<Chunk> = (0..GRADIENT_CHUNKS)
-            .map(|_| Chunk::new(&actor, &critic))
-            .collect();
+        let chunks = Chunks::new(&nets.actor, &nets.critic);
         let mut y = Vec::new();
-        for part in [Part::Critic, Part::Actor] {
-            for (k, chunk) in chunks.iter_mut().enumerate() {
-                model.run_chunk(part, &mut scratch, chunk, k, GRADIENT_CHUNKS);
-                if let Part::Critic = part {
-                    y.extend_from_slice(&scratch.y);
-                }
-            }
+        for k in 0..GRADIENT_CHUNKS {
+            let out = &mut write(&chunks.critic[k]);
+            nets.critic_chunk(cfg, &mut scratch, out, &all, (k, GRADIENT_CHUNKS));
+            y.extend_from_slice(&scratch.y);
         }
+        for k in 0..GRADIENT_CHUNKS {
+            let out = &mut write(&chunks.actor[k]);
+            nets.actor_chunk(cfg, &mut scratch, out, &all, (k, GRADIENT_CHUNKS));
+        }
+        let critic_chunks: Vec<CriticChunk> =
+            chunks.critic.iter().map(|c| read(c).clone()).collect();
+        let actor_chunks: Vec<ActorChunk> = chunks.actor.iter().map(|c| read(c).clone()).collect();
         let (mut critic_sum, mut actor_sum) = (
-            chunks[0].critic_grads.clone(),
-            chunks[0].actor_grads.clone(),
+            critic_chunks[0].grads.clone(),
+            actor_chunks[0].grads.clone(),
         );
-        for chunk in &chunks[1..] {
-            critic_sum.add(&chunk.critic_grads);
-            actor_sum.add(&chunk.actor_grads);
+        for (c, a) in critic_chunks[1..].iter().zip(&actor_chunks[1..]) {
+            critic_sum.add(&c.grads);
+            actor_sum.add(&a.grads);
         }
         let pairs = [
-            ("critic", &critic_sum, &whole.critic_grads),
-            ("actor", &actor_sum, &whole.actor_grads),
+            ("critic", &critic_sum, &whole_critic.grads),
+            ("actor", &actor_sum, &whole_actor.grads),
         ];
         for (what, sum, whole) in pairs {
             for (t, (got, want)) in sum.tensors().zip(whole.tensors()).enumerate() {
@@ -1799,12 +1899,17 @@ mod tests {
             }
         }
         assert_eq!(y, whole_y, "targets are per sample");
-        let sum = |f: fn(&Chunk) -> f32| chunks.iter().map(f).sum::<f32>();
+        let sum = |f: fn(&CriticChunk) -> f32| critic_chunks.iter().map(f).sum::<f32>();
+        let policy_q_sum = actor_chunks.iter().map(|c| c.policy_q_sum).sum::<f32>();
         for (what, got, want) in [
-            ("targets", sum(|c| c.target_sum), whole.target_sum),
-            ("squared errors", sum(|c| c.sq_err_sum), whole.sq_err_sum),
-            ("Q", sum(|c| c.q_sum), whole.q_sum),
-            ("policy Q", sum(|c| c.policy_q_sum), whole.policy_q_sum),
+            ("targets", sum(|c| c.target_sum), whole_critic.target_sum),
+            (
+                "squared errors",
+                sum(|c| c.sq_err_sum),
+                whole_critic.sq_err_sum,
+            ),
+            ("Q", sum(|c| c.q_sum), whole_critic.q_sum),
+            ("policy Q", policy_q_sum, whole_actor.policy_q_sum),
         ] {
             assert!(
                 (got - want).abs() <= 1e-4 * want.abs().max(1.0),

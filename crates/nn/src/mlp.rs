@@ -28,7 +28,7 @@ pub(crate) struct Dense {
 
 /// Tensor `i` of `layers` in the order of [`Mlp::tensors`]: layer `i / 2`'s weights for an even
 /// `i`, its biases for an odd one.
-fn tensor_of(layers: &mut [Dense], i: usize) -> &mut Vec<f32> {
+fn tensor_of(layers: &mut [Dense], i: usize) -> &mut [f32] {
     let layer = &mut layers[i / 2];
     if i.is_multiple_of(2) {
         &mut layer.w
@@ -295,9 +295,8 @@ impl Mlp {
         2 * self.layers.len()
     }
 
-    /// Parameter tensor `i` (in the order of [`Mlp::tensors`]) itself, to be moved out (to
-    /// another thread) and put back with [`std::mem::swap`].
-    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+    /// Parameter tensor `i` (in the order of [`Mlp::tensors`]), to change.
+    pub(crate) fn tensor_mut(&mut self, i: usize) -> &mut [f32] {
         tensor_of(&mut self.layers, i)
     }
 
@@ -528,9 +527,9 @@ impl MlpTransposed {
         }
     }
 
-    /// The kept transpose of weight tensor `i` (in the order of [`Mlp::tensors`]) itself, to be
-    /// moved out and put back: empty where none is kept.
-    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+    /// The kept transpose of weight tensor `i` (in the order of [`Mlp::tensors`]), to refresh:
+    /// empty where none is kept.
+    pub(crate) fn tensor_mut(&mut self, i: usize) -> &mut [f32] {
         debug_assert_eq!(i % 2, 0, "only weights have transposes");
         &mut self.layers[i / 2]
     }
@@ -591,8 +590,8 @@ impl MlpGrads {
         }
     }
 
-    /// Gradient tensor `i` itself, to be moved out and put back.
-    pub(crate) fn tensor_vec_mut(&mut self, i: usize) -> &mut Vec<f32> {
+    /// Gradient tensor `i`, to change.
+    pub(crate) fn tensor_mut(&mut self, i: usize) -> &mut [f32] {
         tensor_of(&mut self.layers, i)
     }
 

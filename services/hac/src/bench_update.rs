@@ -53,21 +53,23 @@ pub struct ThreadsRow {
     /// summed GFLOP/s over one copy's alone (measured just before). The update's `speedup`
     /// cannot beat it by more than the machine's drift.
     pub sgemm_scaling: f64,
-    /// Microseconds per update outside the parts the threads share, which no second thread
-    /// takes (the minibatch copied in, the chunks' statistics, the target networks' Polyak
-    /// step): with `ms_per_update` at one thread, Amdahl's bound on more threads.
+    /// Microseconds per update outside the chunk parts the threads share, which no second
+    /// thread takes (the minibatch copied in, the chunks' statistics, the two optimiser steps,
+    /// which every thread takes whole on its own copy of the networks, and the target
+    /// networks' Polyak step): with `ms_per_update` at one thread, Amdahl's bound on more
+    /// threads.
     pub serial_us: f64,
     /// Microseconds per update the calling thread waits for the workers after its own share
     /// (0 on one thread): threads that finish unevenly, or cores that slow each other down.
     pub waiting_us: f64,
     /// Microseconds per update in the two optimiser steps (the chunk gradients summed, Adam,
-    /// the kept transposes refreshed), which the threads share tensor by tensor.
+    /// the kept transposes refreshed), part of `serial_us`.
     pub steps_us: f64,
     /// Nanoseconds for one cache line to go from one thread to another and back, measured
     /// just before and just after this row (null on one thread): about 65 ns between cores
     /// that share a cache on the AMD EPYC hosts of docs/RESULTS.md, 300-400 ns when the host
-    /// put the virtual machine's two cores far apart. The threads of an update hand each other
-    /// gradients and weights every step, so that distance is paid many times per update.
+    /// put the virtual machine's two cores far apart. The threads of an update read each other's
+    /// chunk gradients every step, so that distance is paid many times per update.
     pub round_trip_ns: Option<[f64; 2]>,
 }
 
@@ -338,11 +340,12 @@ pub fn run_and_print(bench: &UpdateBench) -> Result<()> {
         "(sgemm copies at once: that many independent single-core sgemm runs at the same time, \
          their summed rate over one alone: what the cores give together, the ceiling of the \
          speedup; serial: per update, the part no second thread shares (minibatch copy, the \
-         chunks' statistics, Polyak steps); waiting: per update, the calling thread idle after \
-         its own share of the chunks and of the optimiser steps until the workers finish theirs; \
-         steps: per update, the two optimiser steps (gradient sums, Adam, transposes), which the \
-         threads share by tensor; core round trip: one cache line from one thread to another \
-         and back, just before and after the row: how far apart the cores are)"
+         chunks' statistics, optimiser and Polyak steps); waiting: per update, the calling \
+         thread idle after its own share of the chunks until the workers finish theirs; steps: \
+         per update, of serial, the two optimiser steps (gradient sums, Adam, transposes), \
+         which every thread takes whole on its own copy of the networks; core round trip: one \
+         cache line from one thread to another and back, just before and after the row: how \
+         far apart the cores are)"
     );
     Ok(())
 }

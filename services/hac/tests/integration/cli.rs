@@ -1230,8 +1230,9 @@ fn bench_update_reports_each_thread_count_against_the_sgemm_peak() {
             (gflops - flops / ms / 1e6).abs() < 1e-6 * gflops,
             "{report}"
         );
-        // The serial part and the wait are parts of the update. With one chunk (batch 256) a
-        // second thread shares only the optimiser steps; one thread waits for nobody.
+        // The serial part, the wait and the optimiser steps are parts of the update. With one
+        // chunk (batch 256) a second thread only keeps its copy of the networks in step; one
+        // thread waits for nobody.
         let serial = row["serial_us"].as_f64().unwrap();
         assert!(serial > 0.0 && serial < ms * 1e3, "{report}");
         let waiting = row["waiting_us"].as_f64().unwrap();
