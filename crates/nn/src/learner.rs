@@ -390,6 +390,20 @@ impl Scratch {
             actor_pre: Vec::new(),
         }
     }
+
+    /// The samples of chunk `k` of `chunks` (`at`) of the minibatch `all`, whose fields have
+    /// widths `dims`, with the workspaces sized for them.
+    fn take_chunk<'a>(
+        &mut self,
+        dims: LevelDims,
+        all: &Fields<'a>,
+        (k, chunks): (usize, usize),
+    ) -> Fields<'a> {
+        let samples = all.part(dims, chunk_samples(k, chunks, all.len));
+        self.actor_ws.set_batch(samples.len);
+        self.critic_ws.set_batch(samples.len);
+        samples
+    }
 }
 
 /// One chunk's results of the critic part: its gradient and sums, read after the part by the
@@ -518,24 +532,22 @@ impl Nets {
         }
     }
 
-    /// The critic part of chunk `k` of `chunks` of the minibatch `all`: the targets and the
-    /// critic's gradient, into `out`.
+    /// The critic part of chunk `at = (k, chunks)` (chunk `k` of `chunks`) of the minibatch
+    /// `all`: the targets and the critic's gradient, into `out`.
     fn critic_chunk(
         &self,
         config: &LearnerConfig,
         scratch: &mut Scratch,
         out: &mut CriticChunk,
         all: &Fields<'_>,
-        (k, chunks): (usize, usize),
+        at: (usize, usize),
     ) {
-        let samples = all.part(config.dims, chunk_samples(k, chunks, all.len));
-        scratch.actor_ws.set_batch(samples.len);
-        scratch.critic_ws.set_batch(samples.len);
+        let samples = scratch.take_chunk(config.dims, all, at);
         self.set_targets(config, scratch, out, &samples);
         self.critic_gradient(config, scratch, out, &samples, all.len);
     }
 
-    /// The actor part of chunk `k` of `chunks` of the minibatch `all`: the actor's gradient
+    /// The actor part of chunk `at = (k, chunks)` of the minibatch `all`: the actor's gradient
     /// through the updated critic, into `out`.
     fn actor_chunk(
         &self,
@@ -543,11 +555,9 @@ impl Nets {
         scratch: &mut Scratch,
         out: &mut ActorChunk,
         all: &Fields<'_>,
-        (k, chunks): (usize, usize),
+        at: (usize, usize),
     ) {
-        let samples = all.part(config.dims, chunk_samples(k, chunks, all.len));
-        scratch.actor_ws.set_batch(samples.len);
-        scratch.critic_ws.set_batch(samples.len);
+        let samples = scratch.take_chunk(config.dims, all, at);
         self.actor_gradient(config, scratch, out, &samples, all.len);
     }
 
