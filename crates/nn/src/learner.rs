@@ -778,6 +778,9 @@ impl Gate {
 
     /// Arrives for the `pass`-th time (from 1) and returns once every thread has.
     fn pass(&self, pass: u64) -> Result<(), Stopped> {
+        if self.stopped.load(Ordering::Acquire) {
+            return Err(Stopped);
+        }
         let all = pass * self.threads;
         if self.arrived.fetch_add(1, Ordering::AcqRel) + 1 == all {
             self.wake_all();
@@ -1818,6 +1821,40 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_gate_lets_threads_through_together_and_a_stop_frees_a_waiter() {
+        let gate = Arc::new(Gate::new(3));
+        let arrivals = Arc::new(AtomicU64::new(0));
+        let threads: Vec<_> = (0..3)
+            .map(|_| {
+                let (gate, arrivals) = (Arc::clone(&gate), Arc::clone(&arrivals));
+                std::thread::spawn(move || {
+                    for pass in 1..=200 {
+                        arrivals.fetch_add(1, Ordering::SeqCst);
+                        gate.pass(pass).expect("nobody stops this gate");
+                        // No thread gets through before every thread has arrived.
+                        assert!(arrivals.load(Ordering::SeqCst) >= 3 * pass, "pass {pass}");
+                    }
+                })
+            })
+            .collect();
+        for thread in threads {
+            thread.join().unwrap();
+        }
+
+        // A thread waiting for one that never comes, asleep by now, is freed by a stop.
+        let gate = Arc::new(Gate::new(2));
+        let waiter = std::thread::spawn({
+            let gate = Arc::clone(&gate);
+            move || gate.pass(1)
+        });
+        std::thread::sleep(3 * SPIN_BEFORE_PARKING);
+        gate.stop();
+        assert!(waiter.join().unwrap().is_err());
+        // And a thread that comes to a stopped gate does not wait.
+        assert!(gate.pass(1).is_err());
     }
 
     /// Each worker keeps its own copy of the networks and optimisers: it must follow the
