@@ -532,33 +532,39 @@ impl Nets {
         }
     }
 
-    /// The critic part of chunk `at = (k, chunks)` (chunk `k` of `chunks`) of the minibatch
-    /// `all`: the targets and the critic's gradient, into `out`.
-    fn critic_chunk(
+    /// The critic part of chunks `run` of the `of` chunks of the minibatch `all`, one after the
+    /// other through `scratch`: each chunk's targets and critic gradient, into `chunks.critic`.
+    fn critic_part(
         &self,
         config: &LearnerConfig,
         scratch: &mut Scratch,
-        out: &mut CriticChunk,
+        chunks: &Chunks,
         all: &Fields<'_>,
-        at: (usize, usize),
+        (run, of): (Range<usize>, usize),
     ) {
-        let samples = scratch.take_chunk(config.dims, all, at);
-        self.set_targets(config, scratch, out, &samples);
-        self.critic_gradient(config, scratch, out, &samples, all.len);
+        for k in run {
+            let out = &mut write(&chunks.critic[k]);
+            let samples = scratch.take_chunk(config.dims, all, (k, of));
+            self.set_targets(config, scratch, out, &samples);
+            self.critic_gradient(config, scratch, out, &samples, all.len);
+        }
     }
 
-    /// The actor part of chunk `at = (k, chunks)` of the minibatch `all`: the actor's gradient
-    /// through the updated critic, into `out`.
-    fn actor_chunk(
+    /// The actor part of chunks `run` of the `of` chunks of the minibatch `all`: each chunk's
+    /// actor gradient through the updated critic, into `chunks.actor`.
+    fn actor_part(
         &self,
         config: &LearnerConfig,
         scratch: &mut Scratch,
-        out: &mut ActorChunk,
+        chunks: &Chunks,
         all: &Fields<'_>,
-        at: (usize, usize),
+        (run, of): (Range<usize>, usize),
     ) {
-        let samples = scratch.take_chunk(config.dims, all, at);
-        self.actor_gradient(config, scratch, out, &samples, all.len);
+        for k in run {
+            let out = &mut write(&chunks.actor[k]);
+            let samples = scratch.take_chunk(config.dims, all, (k, of));
+            self.actor_gradient(config, scratch, out, &samples, all.len);
+        }
     }
 
     /// Sets `scratch.y` to the clipped bootstrap targets of `samples`, and `out.target_sum`.
@@ -888,47 +894,10 @@ impl Pool {
                 let (jobs, job_rx) = mpsc::sync_channel::<Job>(1);
                 let chunks = Arc::clone(chunks);
                 let stop_on_panic = StopOnPanic(Arc::clone(&gate));
-                let config = config.clone();
-                let mut nets = nets.clone();
-                let mut scratch = Scratch::new(&nets.actor, &nets.critic);
+                let (config, nets) = (config.clone(), nets.clone());
                 let thread = std::thread::Builder::new()
                     .name("learner-worker".into())
-                    .spawn(move || {
-                        let gate = &stop_on_panic.0;
-                        let mut passes = 0;
-                        while let Ok(job) = recv_spinning(&job_rx) {
-                            let (batch, run, of) = match job {
-                                Job::Copy(copy) => {
-                                    nets = *copy;
-                                    continue;
-                                }
-                                Job::Update { batch, chunks, of } => (batch, chunks, of),
-                            };
-                            let all = batch.fields();
-                            for k in run.clone() {
-                                let out = &mut write(&chunks.critic[k]);
-                                nets.critic_chunk(&config, &mut scratch, out, &all, (k, of));
-                            }
-                            passes += 1;
-                            if gate.pass(passes).is_err() {
-                                break;
-                            }
-                            nets.step_critic(&chunks, of);
-                            for k in run {
-                                let out = &mut write(&chunks.actor[k]);
-                                nets.actor_chunk(&config, &mut scratch, out, &all, (k, of));
-                            }
-                            // The minibatch is let go before the gate, after which the learner
-                            // may copy the next one in.
-                            drop(batch);
-                            passes += 1;
-                            if gate.pass(passes).is_err() {
-                                break;
-                            }
-                            nets.step_actor(&chunks, of);
-                            nets.polyak();
-                        }
-                    })
+                    .spawn(move || work(&job_rx, &chunks, &stop_on_panic.0, &config, nets))
                     .expect("learner: spawning a worker thread");
                 Worker { jobs, thread }
             })
@@ -967,6 +936,46 @@ impl std::fmt::Debug for Pool {
         f.debug_struct("Pool")
             .field("workers", &self.workers.len())
             .finish()
+    }
+}
+
+/// A worker thread's life: the jobs from `jobs`, on its own copy `nets` of what an update
+/// changes, meeting the other threads at `gate`, until the learner lets go of the channel or
+/// stops the gate.
+fn work(
+    jobs: &Receiver<Job>,
+    chunks: &Chunks,
+    gate: &Gate,
+    config: &LearnerConfig,
+    mut nets: Nets,
+) {
+    let mut scratch = Scratch::new(&nets.actor, &nets.critic);
+    let mut passes = 0;
+    while let Ok(job) = recv_spinning(jobs) {
+        let (batch, run, of) = match job {
+            Job::Copy(copy) => {
+                nets = *copy;
+                continue;
+            }
+            Job::Update { batch, chunks, of } => (batch, chunks, of),
+        };
+        let all = batch.fields();
+        nets.critic_part(config, &mut scratch, chunks, &all, (run.clone(), of));
+        passes += 1;
+        if gate.pass(passes).is_err() {
+            break;
+        }
+        nets.step_critic(chunks, of);
+        nets.actor_part(config, &mut scratch, chunks, &all, (run, of));
+        // The minibatch is let go before the gate, after which the learner may copy the next
+        // one in.
+        drop(batch);
+        passes += 1;
+        if gate.pass(passes).is_err() {
+            break;
+        }
+        nets.step_actor(chunks, of);
+        nets.polyak();
     }
 }
 
@@ -1037,13 +1046,7 @@ impl Clone for LevelLearner {
     /// calling thread (it starts no worker; [`LevelLearner::set_threads`] gives it more): a
     /// checkpoint's snapshot is a clone that never updates. Scratch buffers are not copied.
     fn clone(&self) -> Self {
-        let mut copy = Self::assemble(
-            self.config.clone(),
-            self.nets.actor.clone(),
-            self.nets.critic.clone(),
-        );
-        copy.nets.clone_from(&self.nets);
-        copy
+        Self::with_nets(self.config.clone(), self.nets.clone())
     }
 }
 
@@ -1060,10 +1063,16 @@ impl LevelLearner {
     }
 
     fn assemble(config: LearnerConfig, actor: ActorNet, critic: CriticNet) -> Self {
+        let nets = Nets::new(&config, actor, critic);
+        Self::with_nets(config, nets)
+    }
+
+    /// A learner on `nets`, with fresh buffers, updating on the calling thread.
+    fn with_nets(config: LearnerConfig, nets: Nets) -> Self {
         Self {
-            chunks: Arc::new(Chunks::new(&actor, &critic)),
-            scratch: Scratch::new(&actor, &critic),
-            nets: Nets::new(&config, actor, critic),
+            chunks: Arc::new(Chunks::new(&nets.actor, &nets.critic)),
+            scratch: Scratch::new(&nets.actor, &nets.critic),
+            nets,
             config,
             batch: Arc::default(),
             pool: None,
@@ -1182,12 +1191,10 @@ impl LevelLearner {
 
         let parallel = Instant::now();
         let all = self.batch.fields();
-        for k in share(0) {
-            let out = &mut write(&self.chunks.critic[k]);
-            let scratch = &mut self.scratch;
-            self.nets
-                .critic_chunk(&self.config, scratch, out, &all, (k, chunks));
-        }
+        let (config, scratch) = (&self.config, &mut self.scratch);
+        let own = (share(0), chunks);
+        self.nets
+            .critic_part(config, scratch, &self.chunks, &all, own.clone());
         meet(&mut self.pool, &mut self.timing);
         let mut took = parallel.elapsed();
         let (mut target_sum, mut sq_err_sum, mut q_sum) = (0.0, 0.0, 0.0);
@@ -1202,12 +1209,9 @@ impl LevelLearner {
         let mut steps = step.elapsed();
 
         let parallel = Instant::now();
-        for k in share(0) {
-            let out = &mut write(&self.chunks.actor[k]);
-            let scratch = &mut self.scratch;
-            self.nets
-                .actor_chunk(&self.config, scratch, out, &all, (k, chunks));
-        }
+        let (config, scratch) = (&self.config, &mut self.scratch);
+        self.nets
+            .actor_part(config, scratch, &self.chunks, &all, own);
         meet(&mut self.pool, &mut self.timing);
         took += parallel.elapsed();
         let policy_q_sum: f32 = self.chunks.actor[..chunks]
@@ -1901,24 +1905,31 @@ mod tests {
         let (cfg, nets) = (&learner.config, &learner.nets);
         let mut scratch = Scratch::new(&nets.actor, &nets.critic);
         let whole = Chunks::new(&nets.actor, &nets.critic);
-        let (whole_critic, whole_actor) =
-            (&mut write(&whole.critic[0]), &mut write(&whole.actor[0]));
-        nets.critic_chunk(cfg, &mut scratch, whole_critic, &all, (0, 1));
+        nets.critic_part(cfg, &mut scratch, &whole, &all, (0..1, 1));
         let whole_y = scratch.y.clone();
-        nets.actor_chunk(cfg, &mut scratch, whole_actor, &all, (0, 1));
+        nets.actor_part(cfg, &mut scratch, &whole, &all, (0..1, 1));
+        let (whole_critic, whole_actor) = (read(&whole.critic[0]), read(&whole.actor[0]));
         // The chunks run one after the other through one scratch, as on a thread; the actor part
         // starts after the last chunk's critic part has left its rows in the scratch.
         let chunks = Chunks::new(&nets.actor, &nets.critic);
         let mut y = Vec::new();
         for k in 0..GRADIENT_CHUNKS {
-            let out = &mut write(&chunks.critic[k]);
-            nets.critic_chunk(cfg, &mut scratch, out, &all, (k, GRADIENT_CHUNKS));
+            nets.critic_part(
+                cfg,
+                &mut scratch,
+                &chunks,
+                &all,
+                (k..k + 1, GRADIENT_CHUNKS),
+            );
             y.extend_from_slice(&scratch.y);
         }
-        for k in 0..GRADIENT_CHUNKS {
-            let out = &mut write(&chunks.actor[k]);
-            nets.actor_chunk(cfg, &mut scratch, out, &all, (k, GRADIENT_CHUNKS));
-        }
+        nets.actor_part(
+            cfg,
+            &mut scratch,
+            &chunks,
+            &all,
+            (0..GRADIENT_CHUNKS, GRADIENT_CHUNKS),
+        );
         let critic_chunks: Vec<CriticChunk> =
             chunks.critic.iter().map(|c| read(c).clone()).collect();
         let actor_chunks: Vec<ActorChunk> = chunks.actor.iter().map(|c| read(c).clone()).collect();
