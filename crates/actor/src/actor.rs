@@ -40,6 +40,10 @@ pub struct ActorOptions {
     pub weights_timeout: Option<Duration>,
     /// Transitions per batch sent (capped by the learner's limit).
     pub batch_transitions: usize,
+    /// Trainers: continue from the state a trainer stopped in ([`ActorSummary::trainer_state`])
+    /// instead of starting the run's random streams afresh. With the learner resumed from the
+    /// checkpoint written at the same point, a lockstep trainer then continues its run exactly.
+    pub resume: Option<TrainerState>,
 }
 
 impl ActorOptions {
@@ -55,6 +59,7 @@ impl ActorOptions {
             max_episodes: None,
             weights_timeout: None,
             batch_transitions: 1024,
+            resume: None,
         }
     }
 
@@ -99,6 +104,23 @@ pub struct ActorSummary {
     /// Weights snapshots the actor could not use (not finite, or not the run's shape) and
     /// skipped, acting on the last usable ones.
     pub unusable_weights: u64,
+    /// A trainer's state as it stopped, for [`ActorOptions::resume`] (none for evaluators).
+    pub trainer_state: Option<TrainerState>,
+}
+
+/// Where a trainer's run stands between two episodes: its counts, the training episodes it
+/// last evaluated after, and its random streams (the behaviour policy's, the training
+/// episodes', the test rounds'). Plain data, saved beside a checkpoint by `hac train`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrainerState {
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub successes: u64,
+    pub evaluations: u64,
+    pub evaluated_after: Option<u64>,
+    pub exploration: Rng,
+    pub train: Rng,
+    pub test: Rng,
 }
 
 /// Set apart the family of an evaluator's test-round streams ([`Rng::stream`]) from that of
@@ -154,10 +176,11 @@ pub fn run_actor(
         )));
     }
     let mut root = Rng::seed_from(admission.seed);
-    let state = State {
+    let mut state = State {
         exploration: GaussianExploration::new(&spec, &run.agent, root.fork()),
         train_rng: root.fork(),
         test_rng: root.fork(),
+        evaluated_after: None,
         episodes: Episodes::new(&spec, &run.agent, run.hiro()),
         adder: Adder::with_extra(
             &dims,
@@ -177,6 +200,9 @@ pub fn run_actor(
         unusable: None,
         on_evaluation,
     };
+    if let (ActorRole::Trainer, Some(from)) = (options.role, &options.resume) {
+        state.resume(from);
+    }
     let mut actor = Actor {
         link,
         options,
@@ -191,6 +217,9 @@ pub fn run_actor(
         Ok(()) => {}
         Err(ActorError::Link(LinkError::Finished)) => actor.s.summary.run_finished = true,
         Err(e) => return Err(e),
+    }
+    if options.role == ActorRole::Trainer {
+        actor.s.summary.trainer_state = Some(actor.s.trainer_state());
     }
     // Links register again by themselves (after a learner restart, or when the id registered
     // elsewhere): the summary names the incarnation the actor ended under, not the first.
@@ -207,6 +236,8 @@ struct State<F> {
     exploration: GaussianExploration,
     train_rng: Rng,
     test_rng: Rng,
+    /// The training episodes a trainer last evaluated after.
+    evaluated_after: Option<u64>,
     episodes: Episodes,
     adder: Adder,
     gate: WeightsGate,
@@ -214,6 +245,35 @@ struct State<F> {
     /// The last weights version found unusable (reported once).
     unusable: Option<u64>,
     on_evaluation: F,
+}
+
+impl<F> State<F> {
+    /// Takes up a trainer's state where it stopped.
+    fn resume(&mut self, from: &TrainerState) {
+        let summary = &mut self.summary;
+        summary.episodes = from.episodes;
+        summary.env_steps = from.env_steps;
+        summary.successes = from.successes;
+        summary.evaluations = from.evaluations;
+        self.evaluated_after = from.evaluated_after;
+        self.exploration.reseed(from.exploration.clone());
+        self.train_rng = from.train.clone();
+        self.test_rng = from.test.clone();
+    }
+
+    fn trainer_state(&self) -> TrainerState {
+        let summary = &self.summary;
+        TrainerState {
+            episodes: summary.episodes,
+            env_steps: summary.env_steps,
+            successes: summary.successes,
+            evaluations: summary.evaluations,
+            evaluated_after: self.evaluated_after,
+            exploration: self.exploration.rng().clone(),
+            train: self.train_rng.clone(),
+            test: self.test_rng.clone(),
+        }
+    }
 }
 
 /// How a trainer waits for the weights of its next episode: the one place that chooses among
@@ -342,7 +402,6 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
     fn train(&mut self) -> Result<(), ActorError> {
         let max = self.options.max_episodes;
         let mut policy: Option<SnapshotPolicy> = None;
-        let mut last_eval: Option<u64> = None;
         loop {
             let sent = self.s.summary.episodes;
             let Some(NextWeights {
@@ -362,9 +421,9 @@ impl<F: FnMut(&EvaluationEvent)> Actor<'_, F> {
                 continue;
             };
             self.s.summary.weights_version = p.version();
-            if self.evaluation_due(sent, last_eval) {
+            if self.evaluation_due(sent, self.s.evaluated_after) {
                 self.evaluate(&mut p, &snapshot)?;
-                last_eval = Some(sent);
+                self.s.evaluated_after = Some(sent);
             }
             // The evaluation may have finished the run (target reached).
             let finished = snapshot.run_finished

@@ -17,6 +17,6 @@ mod actor;
 mod adder;
 mod policy;
 
-pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, run_actor};
+pub use actor::{ActorError, ActorOptions, ActorSummary, EvaluationEvent, TrainerState, run_actor};
 pub use adder::Adder;
 pub use policy::{SnapshotPolicy, UnusableWeights, best_policy};

@@ -83,6 +83,11 @@ impl GaussianExploration {
     pub fn reseed(&mut self, rng: Rng) {
         self.rng = rng;
     }
+
+    /// The stream it draws from next.
+    pub fn rng(&self) -> &Rng {
+        &self.rng
+    }
 }
 
 impl Exploration for GaussianExploration {

@@ -40,6 +40,7 @@ use hac_proto::{ActorRole, WeightsSnapshot};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
 use parking_lot::{Condvar, Mutex};
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 
 use crate::ingest::Counters;
 use crate::registry::{ActorEntry, Registry};
@@ -77,6 +78,9 @@ pub enum CheckpointError {
     ConfigMismatch { differences: String },
     #[error("the run in the checkpoint is complete ({reason}): there is nothing to resume")]
     Complete { reason: String },
+    /// [`LearnerCheckpoint::continue_as`] was given a run with nothing left to train.
+    #[error("{0}")]
+    NothingToTrain(String),
 }
 
 fn invalid(file: impl Into<String>, message: impl ToString) -> CheckpointError {
@@ -389,6 +393,45 @@ impl LearnerCheckpoint {
     pub fn run_config(&self) -> Result<RunConfig, CheckpointError> {
         RunConfig::from_toml(&self.state.run_config, "the checkpoint's run config")
             .map_err(|e| invalid(STATE_FILE, e))
+    }
+
+    /// Lets the run in the checkpoint go on under `run`: the checkpoint's config with a larger
+    /// episode budget and any `stop_at` that no round of its curve has reached yet, and nothing
+    /// else changed (the error names every other key that differs). A run that completed (its
+    /// budget trained, or its target reached) can then be resumed; what it learned and every
+    /// random stream go on as they stood, so a run continued from a checkpoint of its own end
+    /// is the run it would have been with the larger budget from the start.
+    pub fn continue_as(&mut self, run: &RunConfig) -> Result<(), CheckpointError> {
+        let saved = self.run_config()?;
+        let mut same = run.clone();
+        (same.episodes, same.stop_at) = (saved.episodes, saved.stop_at);
+        if same.to_toml() != saved.to_toml() {
+            return Err(CheckpointError::ConfigMismatch {
+                differences: differences(&saved, &same),
+            });
+        }
+        let trained = self.episodes();
+        if run.episodes <= trained {
+            return Err(CheckpointError::NothingToTrain(format!(
+                "the run has trained {trained} episodes already; ask for more than that"
+            )));
+        }
+        if let Some(target) = run.stop_at
+            && let Some(round) = self.curve().iter().find(|r| r.success_rate >= target)
+        {
+            return Err(CheckpointError::NothingToTrain(format!(
+                "round {} ({} episodes) reached {:.1}% already, which stop_at {target} asks for; \
+                 raise it or leave it out",
+                round.round,
+                round.episodes,
+                round.success_rate * 100.0
+            )));
+        }
+        let text = run.to_toml();
+        self.state.run_config_digest = crate::hex(&Sha256::digest(text.as_bytes()));
+        self.state.run_config = text;
+        self.state.completed = None;
+        Ok(())
     }
 
     /// The trained agent (every level's networks), checked against the checkpoint's config.

@@ -18,5 +18,7 @@ mod in_process;
 pub mod metrics;
 pub mod shm;
 
-pub use embedded::{EmbeddedError, EmbeddedRun, train_embedded, train_embedded_with};
+pub use embedded::{
+    EmbeddedError, EmbeddedRun, SavedRun, train_embedded, train_embedded_from, train_embedded_with,
+};
 pub use in_process::InProcess;

@@ -175,6 +175,7 @@ pub fn run(args: ActorArgs) -> Result<()> {
         weights_timeout: args.weights_timeout,
         batch_transitions: usize::try_from(args.batch_transitions)
             .context("invalid value for --batch-transitions")?,
+        resume: None,
     };
     let ops = args.ops.resolve()?;
     let link_options = GrpcLinkOptions {

@@ -38,21 +38,23 @@ mod schedule;
 mod status_cmd;
 mod tabular_cmd;
 
+use hac_run::checkpoints::CheckpointStore;
 use hac_run::logging::{LogFormat, error_chain, init_tracing};
 use hac_run::{config, plot, registry, run_dir};
 
 use std::cell::RefCell;
-use std::path::PathBuf;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
-use hac_agent::{Agent, RoundReport};
+use hac_agent::{Agent, RoundReport, RunConfig};
 use hac_core::{Episodes, LevelCounts, Mode, Policy};
-use hac_learner::LearnerOptions;
+use hac_learner::{LearnerCheckpoint, LearnerOptions};
 use hac_run::daemon::{self, ConfigFile, Mount};
-use hac_serve::train_embedded_with;
+use hac_serve::{SavedRun, train_embedded_from};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -405,6 +407,19 @@ struct TrainArgs {
     /// it with `hac bench update`.
     #[arg(long, env = "HAC_LEARNER_THREADS")]
     learner_threads: Option<usize>,
+    /// When the run stops (its budget trained, its target reached, or Ctrl-C), save its whole
+    /// state in `<out>/checkpoints/`: networks, optimisers, replay, random streams. `--resume`
+    /// continues from it exactly. The replay makes it large (tens to hundreds of MB for the
+    /// 3-level tasks; see docs/CHECKPOINTS.md).
+    #[arg(long, env = "HAC_KEEP_STATE")]
+    keep_state: bool,
+    /// Continue the run in `--out` from the state `--keep-state` saved, to `--episodes` (more
+    /// than it has trained, for a run that completed) and `--stop-at`, the only settings that
+    /// may change: the config is the run's own. The curve, best weights and weights go on
+    /// from where they stood, and the run is the one a larger budget would have given from the
+    /// start, bit for bit. Its state is saved again at the end.
+    #[arg(long, conflicts_with_all = ["overwrite", "keep_state"])]
+    resume: bool,
 }
 
 #[derive(Debug, Args)]
@@ -599,6 +614,9 @@ fn main() {
 }
 
 fn train(args: TrainArgs) -> Result<()> {
+    if args.resume {
+        return train_on(args);
+    }
     let run = config::resolve(
         args.config.as_deref(),
         config::Overrides {
@@ -631,35 +649,183 @@ fn train(args: TrainArgs) -> Result<()> {
     if tabular_cmd::handles(&run.env) {
         return tabular_cmd::train(&run, dir, &out);
     }
-    let interrupt = hac_run::signals::interrupt_flag()?;
     outln!("{}", run_dir::training_banner(&run, &out, None));
-    let started = Instant::now();
-    let mut write_error = None;
-    let trained = train_embedded_with(&run, options, &interrupt, |report: &RoundReport| {
-        outln!("{}", schedule::progress_line(report));
-        if let Err(e) = dir.record(report) {
-            write_error.get_or_insert(e);
-        }
-    })?;
-    if let Some(e) = write_error {
-        return Err(e);
-    }
-    if interrupt.load(Ordering::Relaxed) {
-        outln!(
-            "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
-            trained.actor.episodes
+    let ran = Embedded {
+        run: &run,
+        options,
+        from: None,
+        keep_state: args.keep_state,
+        wall_time_before: 0.0,
+    };
+    ran.train(&mut dir, &out)
+}
+
+/// `hac train --resume`: the run in `--out` continued from the state `--keep-state` saved.
+fn train_on(args: TrainArgs) -> Result<()> {
+    let given: Vec<&str> = [
+        ("--algo", args.algo.is_some()),
+        ("--env", args.env.is_some()),
+        ("--levels", args.levels.is_some()),
+        ("--seed", args.seed.is_some()),
+        ("--replay-shards", args.replay_shards.is_some()),
+        ("--max-actions", args.max_actions.is_some()),
+        ("--config", args.config.is_some()),
+        ("--set", !args.set.is_empty()),
+    ]
+    .into_iter()
+    .filter_map(|(flag, given)| given.then_some(flag))
+    .collect();
+    if !given.is_empty() {
+        anyhow::bail!(
+            "--resume continues the run with its own config; only --episodes and --stop-at may \
+             change (drop {}, or its HAC_* variable)",
+            given.join(", ")
         );
     }
-    if let Some(best) = &trained.best {
-        dir.save_best(best)?;
+    let out = args
+        .out
+        .context("--resume needs the run directory: pass --out")?;
+    let mut run = config::load_run(&out)?;
+    if tabular_cmd::handles(&run.env) {
+        anyhow::bail!(
+            "{} is a grid-world run: tabular runs train in seconds and cannot be continued",
+            out.display()
+        );
     }
-    let summary = dir.finish(
-        &trained.agent,
-        &trained.curve,
-        started.elapsed().as_secs_f64(),
-    )?;
-    outln!("{}", summary.done_line(&out));
-    Ok(())
+    if let Some(episodes) = args.episodes {
+        run.episodes = episodes;
+    }
+    if args.stop_at.is_some() {
+        run.stop_at = args.stop_at;
+    }
+    let store = CheckpointStore::of_run(&out);
+    let loaded = store.load_newest(saved_run_from_files)?.with_context(|| {
+        format!(
+            "{} holds no saved state to continue from: train it with --keep-state",
+            out.display()
+        )
+    })?;
+    for skipped in &loaded.skipped {
+        tracing::warn!(checkpoint = %skipped.name, reason = %skipped.reason, "skipped");
+    }
+    let mut saved = loaded.value;
+    saved
+        .checkpoint
+        .continue_as(&run)
+        .with_context(|| format!("continuing {}", out.display()))?;
+    if args.print_config {
+        out!("{}", toml::to_string(&run)?);
+        return Ok(());
+    }
+    let mut options = LearnerOptions::for_run(&run);
+    if let Some(threads) = args.learner_threads {
+        options.learner_threads = threads;
+        options.validate()?;
+    }
+    let mut dir = run_dir::RunDir::resume(&out, &run, saved.checkpoint.curve())?;
+    outln!(
+        "continuing {} from {} episodes ({} test rounds, {}) to {} episodes",
+        out.display(),
+        saved.trainer.episodes,
+        saved.checkpoint.curve().len(),
+        loaded.name,
+        run.episodes
+    );
+    let wall_time_before = run_dir::load_summary(&out).map_or(0.0, |s| s.wall_time_s);
+    let ran = Embedded {
+        run: &run,
+        options,
+        from: Some(&saved),
+        keep_state: true,
+        wall_time_before,
+    };
+    ran.train(&mut dir, &out)
+}
+
+/// The files of a state `hac train --keep-state` saved: the learner's checkpoint and the
+/// trainer's state beside it.
+const TRAINER_STATE_FILE: &str = "trainer.json";
+
+fn saved_run_from_files(files: &BTreeMap<String, Vec<u8>>) -> Result<SavedRun> {
+    let checkpoint = LearnerCheckpoint::from_files(files)?;
+    if !checkpoint.has_replay() {
+        anyhow::bail!(
+            "it holds no replay (a learner daemon's checkpoint without --checkpoint-replay)"
+        );
+    }
+    let trainer = files.get(TRAINER_STATE_FILE).with_context(|| {
+        format!("{TRAINER_STATE_FILE} is missing: not a `hac train --keep-state` state")
+    })?;
+    let trainer =
+        serde_json::from_slice(trainer).with_context(|| format!("reading {TRAINER_STATE_FILE}"))?;
+    Ok(SavedRun {
+        checkpoint,
+        trainer,
+    })
+}
+
+/// One embedded training run into a run directory, from the start or from a saved state.
+struct Embedded<'a> {
+    run: &'a RunConfig,
+    options: LearnerOptions,
+    from: Option<&'a SavedRun>,
+    keep_state: bool,
+    /// Wall time of the earlier processes of a continued run, for `summary.json`.
+    wall_time_before: f64,
+}
+
+impl Embedded<'_> {
+    fn train(self, dir: &mut run_dir::RunDir, out: &Path) -> Result<()> {
+        let interrupt = hac_run::signals::interrupt_flag()?;
+        let started = Instant::now();
+        let mut write_error = None;
+        let trained = train_embedded_from(
+            self.run,
+            self.options,
+            self.from,
+            self.keep_state,
+            &interrupt,
+            |report: &RoundReport| {
+                outln!("{}", schedule::progress_line(report));
+                if let Err(e) = dir.record(report) {
+                    write_error.get_or_insert(e);
+                }
+            },
+        )?;
+        if let Some(e) = write_error {
+            return Err(e);
+        }
+        if interrupt.load(Ordering::Relaxed) {
+            outln!(
+                "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
+                trained.actor.episodes
+            );
+        }
+        if let Some(best) = &trained.best {
+            dir.save_best(best)?;
+        }
+        if let Some(saved) = &trained.saved {
+            let mut files = saved.checkpoint.to_files();
+            files.push((
+                TRAINER_STATE_FILE.to_string(),
+                serde_json::to_vec_pretty(&saved.trainer)?,
+            ));
+            let written = CheckpointStore::of_run(out).write(&files, 1)?;
+            outln!(
+                "state saved in {} ({:.1} MB): `hac train --resume --out {} --episodes N` continues it",
+                written.path.display(),
+                written.bytes as f64 / 1e6,
+                out.display()
+            );
+        }
+        let summary = dir.finish(
+            &trained.agent,
+            &trained.curve,
+            self.wall_time_before + started.elapsed().as_secs_f64(),
+        )?;
+        outln!("{}", summary.done_line(out));
+        Ok(())
+    }
 }
 
 /// A subgoal a level above 0 proposed: the level, the state and goal it proposed from, and its

@@ -4,7 +4,8 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use hac_agent::{RoundReport, RunConfig};
-use hac_serve::{EmbeddedRun, train_embedded};
+use hac_learner::LearnerOptions;
+use hac_serve::{EmbeddedRun, SavedRun, train_embedded, train_embedded_from};
 
 fn run_config(env: &str, seed: u64, episodes: u64, test_episodes: usize) -> RunConfig {
     let mut agent = hac_envs::make(env).unwrap().default_config(2);
@@ -175,4 +176,89 @@ fn hiro_trains_through_the_learner_and_a_seed_gives_the_same_run() {
         assert!(level.last.is_some_and(|s| s.critic_loss.is_finite()));
         assert_eq!(level.diverged_updates, 0);
     }
+}
+
+fn train_keeping(
+    config: &RunConfig,
+    from: Option<&SavedRun>,
+    interrupt: &AtomicBool,
+    interrupt_at_round: Option<usize>,
+) -> EmbeddedRun {
+    let options = LearnerOptions::for_run(config);
+    let mut reported = Vec::new();
+    let run = train_embedded_from(config, options, from, true, interrupt, |report| {
+        reported.push(report.round);
+        if Some(report.round) == interrupt_at_round {
+            interrupt.store(true, Ordering::Relaxed);
+        }
+    })
+    .unwrap();
+    // Only the rounds this call played are reported, the earlier ones were already.
+    let first = from.map_or(1, |saved| saved.checkpoint.curve().len() + 1);
+    assert_eq!(reported, (first..=run.curve.len()).collect::<Vec<_>>());
+    run
+}
+
+fn same_run(a: &EmbeddedRun, b: &EmbeddedRun) {
+    assert_eq!(deterministic_part(&a.curve), deterministic_part(&b.curve));
+    assert_eq!(weights(a), weights(b));
+    assert_eq!(a.status.episodes, b.status.episodes);
+    assert_eq!(a.status.env_steps, b.status.env_steps);
+    let best = |r: &EmbeddedRun| {
+        r.best
+            .as_ref()
+            .map(|b| (b.round, b.episodes, b.success_rate))
+    };
+    assert_eq!(best(a), best(b));
+    let state = |r: &EmbeddedRun| r.saved.as_ref().map(|s| s.trainer.clone());
+    assert_eq!(state(a), state(b));
+}
+
+/// A run whose state was kept when it stopped, at the end of its budget or interrupted, and
+/// continued from it is the run that was never stopped: the same curve, weights, best round and
+/// trainer state, bit for bit. Only the budget and `stop_at` may change on the way.
+#[test]
+fn a_run_continued_from_its_saved_state_is_the_run_never_stopped() {
+    let never = AtomicBool::new(false);
+    let longer = run_config("mountain-car", 5, 30, 10);
+    let whole = train_keeping(&longer, None, &never, None);
+    assert_eq!(whole.curve.len(), 3);
+
+    // Its budget of 20 trained, then raised to 30.
+    let first = train_keeping(&run_config("mountain-car", 5, 20, 10), None, &never, None);
+    let mut saved = first.saved.clone().expect("the state was kept");
+    assert_eq!(saved.checkpoint.completed(), Some("episode budget trained"));
+    assert_eq!(saved.trainer.episodes, 20);
+    saved.checkpoint.continue_as(&longer).unwrap();
+    let rest = train_keeping(&longer, Some(&saved), &never, None);
+    same_run(&rest, &whole);
+
+    // Interrupted after its first round, then continued to its own budget.
+    let interrupt = AtomicBool::new(false);
+    let cut = train_keeping(&longer, None, &interrupt, Some(1));
+    assert_eq!(cut.actor.episodes, 10);
+    let saved = cut.saved.expect("the state was kept");
+    assert_eq!(saved.checkpoint.completed(), None);
+    let rest = train_keeping(&longer, Some(&saved), &never, None);
+    same_run(&rest, &whole);
+
+    // Anything else that changes is named; a budget already trained, or a target already met,
+    // leaves nothing to train.
+    let mut other = first.saved.expect("the state was kept").checkpoint;
+    let mut seed = longer.clone();
+    seed.seed = 6;
+    let error = other.continue_as(&seed).unwrap_err().to_string();
+    assert!(
+        error.contains("`seed` is 5 in the checkpoint, 6 now"),
+        "{error}"
+    );
+    let error = other
+        .continue_as(&run_config("mountain-car", 5, 20, 10))
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("trained 20 episodes already"), "{error}");
+    let mut reached = longer.clone();
+    reached.stop_at = Some(0.0);
+    let error = other.continue_as(&reached).unwrap_err().to_string();
+    assert!(error.contains("round 1 (10 episodes) reached"), "{error}");
 }

@@ -703,6 +703,119 @@ fn experiment_runs_the_grid_and_summarises_it() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `curve.csv` without its wall-clock columns (elapsed, env steps/s, updates/s).
+fn curve_without_times(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("curve.csv"))
+        .unwrap()
+        .lines()
+        .map(|row| {
+            let fields: Vec<&str> = row.split(',').collect();
+            [&fields[..4], &fields[7..]].concat().join(",")
+        })
+        .collect()
+}
+
+/// `hac train --keep-state` saves a run's whole state, and `hac train --resume` trains it on
+/// to a larger budget: the curve and weights of the run trained to that budget at once. Other
+/// changes, a run without a state and a budget already trained are refused with the reason.
+#[test]
+fn a_kept_run_trains_on_with_resume_to_the_longer_run() {
+    let (whole, kept) = (scratch("train-on-whole"), scratch("train-on-kept"));
+    let train = |out: &Path, episodes: &str, keep: bool| {
+        let mut args = vec![
+            "train",
+            "--env",
+            "mountain-car",
+            "--seed",
+            "4",
+            "--episodes",
+            episodes,
+        ];
+        args.extend([
+            "--set",
+            "exploration_episodes=5",
+            "--set",
+            "test_episodes=5",
+        ]);
+        args.extend(["--out", out.to_str().unwrap()]);
+        if keep {
+            args.push("--keep-state");
+        }
+        let o = hac_output(&args);
+        assert!(o.status.success(), "train failed: {}", text(&o.stderr));
+        text(&o.stdout)
+    };
+    train(&whole, "15", false);
+    assert!(!whole.join("checkpoints").exists(), "no state unless asked");
+    let stdout = train(&kept, "10", true);
+    assert!(stdout.contains("state saved in"), "{stdout}");
+    let kept_s = kept.to_str().unwrap();
+
+    let o = hac_output(&["train", "--resume", "--out", kept_s, "--episodes", "15"]);
+    assert!(o.status.success(), "resume failed: {}", text(&o.stderr));
+    let stdout = text(&o.stdout);
+    assert!(
+        stdout.contains("from 10 episodes (2 test rounds"),
+        "{stdout}"
+    );
+    assert_eq!(
+        stdout.lines().filter(|l| l.starts_with("round ")).count(),
+        1
+    );
+    assert_eq!(curve_without_times(&kept), curve_without_times(&whole));
+    for level in ["level0", "level1"] {
+        let file = format!("weights/{level}.safetensors");
+        let bytes = |run: &Path| std::fs::read(run.join(&file)).unwrap();
+        assert!(bytes(&kept) == bytes(&whole), "{file} differs");
+    }
+    let summary = |run: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap()
+    };
+    assert_eq!(summary(&kept)["episodes"], 15);
+
+    for (args, says) in [
+        (
+            vec!["--episodes", "15"],
+            "trained 15 episodes already; ask for more than that",
+        ),
+        (
+            vec!["--episodes", "20", "--seed", "5"],
+            "only --episodes and --stop-at may change (drop --seed",
+        ),
+        (
+            vec!["--episodes", "20", "--set", "gamma=0.9"],
+            "(drop --set",
+        ),
+    ] {
+        let mut all = vec!["train", "--resume", "--out", kept_s];
+        all.extend(args);
+        let o = hac_output(&all);
+        assert!(!o.status.success());
+        assert!(
+            text(&o.stderr).contains(says),
+            "{all:?}: {}",
+            text(&o.stderr)
+        );
+    }
+    let o = hac_output(&[
+        "train",
+        "--resume",
+        "--out",
+        whole.to_str().unwrap(),
+        "--episodes",
+        "20",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o.stderr)
+            .contains("holds no saved state to continue from: train it with --keep-state"),
+        "{}",
+        text(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&whole);
+    let _ = std::fs::remove_dir_all(&kept);
+}
+
 #[test]
 fn sigint_stops_training_between_episodes_and_saves_the_run() {
     interrupt_saves_the_run("mountain-car");
