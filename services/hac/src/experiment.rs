@@ -16,7 +16,9 @@
 //! grid resolves for it is read back instead of trained again ([`inspect`] says what counts as
 //! finished), and the summary covers it like the runs trained now; a run that did not finish is
 //! trained again from the start. A finished run of another configuration is refused before any
-//! run starts.
+//! run starts. A run that saved its state (`--keep-state`) goes on from it instead of starting
+//! again: an interrupted one to its budget, a finished one to a larger episode budget (the only
+//! key, with `stop_at`, that may then differ).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -27,12 +29,12 @@ use anyhow::{Context, Result, bail};
 use hac_agent::RoundReport;
 use hac_core::hiro::Algo;
 use hac_learner::{LearnerOptions, MAX_LEARNER_THREADS, available_threads};
-use hac_serve::train_embedded_with;
+use hac_serve::{SavedRun, train_embedded_from};
 
 use crate::config::{self, RunConfig};
 use crate::plot;
 use crate::run_dir::{self, RunDir, Summary};
-use crate::tabular_cmd;
+use crate::{state, tabular_cmd};
 
 /// What to run.
 #[derive(Debug)]
@@ -53,6 +55,8 @@ pub struct Grid {
     /// Read back the finished runs already in `out` (of the same configuration) instead of
     /// training them again; train the others, unfinished ones again from the start.
     pub resume: bool,
+    /// Each neural run saves its whole state when it stops.
+    pub keep_state: bool,
     /// Set by SIGINT/SIGTERM: running runs stop and save, queued runs do not start.
     pub interrupt: Arc<AtomicBool>,
 }
@@ -74,6 +78,8 @@ enum Found {
     Finished(Box<Finished>),
     /// A run that did not finish, and why it counts as unfinished: train it again.
     Unfinished(String),
+    /// A run with a saved state to go on from (made ready for the grid's budget).
+    Continue(Box<SavedRun>),
 }
 
 /// Runs the grid (see the module documentation) and writes its summary.
@@ -166,11 +172,17 @@ pub fn run(grid: Grid) -> Result<()> {
     let mut reused: Vec<(usize, Finished)> = Vec::new();
     // The runs to train, each with why it is trained again if it was there unfinished.
     let mut to_train: Vec<(usize, Option<String>)> = Vec::new();
+    // The saved states the runs to train go on from, by index in `runs`.
+    let mut from: Vec<Option<SavedRun>> = runs.iter().map(|_| None).collect();
     for (i, found) in found.into_iter().enumerate() {
         match found {
             Found::Nothing => to_train.push((i, None)),
             Found::Finished(f) => reused.push((i, *f)),
             Found::Unfinished(why) => to_train.push((i, Some(why))),
+            Found::Continue(saved) => {
+                to_train.push((i, None));
+                from[i] = Some(*saved);
+            }
         }
     }
     outln!(
@@ -208,10 +220,19 @@ pub fn run(grid: Grid) -> Result<()> {
         );
     }
     for (i, why) in &to_train {
+        let path = run_path(&grid.out, &runs[*i]);
         if let Some(why) = why {
             outln!(
                 "{}: unfinished ({why}); training it again from the start",
-                run_path(&grid.out, &runs[*i]).display()
+                path.display()
+            );
+        }
+        if let Some(saved) = &from[*i] {
+            outln!(
+                "{}: going on from its saved state at {} episodes to {}",
+                path.display(),
+                saved.trainer.episodes,
+                runs[*i].episodes
             );
         }
     }
@@ -230,7 +251,12 @@ pub fn run(grid: Grid) -> Result<()> {
                         break;
                     }
                     let config = &runs[*i];
-                    let result = run_one(config, &grid.out, learner_threads, &grid.interrupt);
+                    let start = Start {
+                        from: from[*i].as_ref(),
+                        keep_state: grid.keep_state || from[*i].is_some(),
+                    };
+                    let result =
+                        run_one(config, &grid.out, learner_threads, start, &grid.interrupt);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
                     let again = if again.is_some() {
                         " (trained again: it was unfinished)"
@@ -369,6 +395,29 @@ fn inspect(dir: &Path, config: &RunConfig) -> Result<Found> {
     if !dir.join("config.toml").exists() {
         return Ok(Found::Nothing);
     }
+    let found = inspect_run(dir, config);
+    if matches!(found, Ok(Found::Finished(_))) {
+        return found;
+    }
+    // Unfinished, or finished under another budget: a saved state goes on from where it stood.
+    let saved = match state::load(dir) {
+        Ok(saved) => saved,
+        Err(e) => {
+            tracing::warn!(run = %dir.display(), "its saved state does not read back: {e:#}");
+            None
+        }
+    };
+    if let Some(loaded) = saved {
+        let mut saved = loaded.value;
+        if saved.checkpoint.continue_as(config).is_ok() {
+            return Ok(Found::Continue(Box::new(saved)));
+        }
+    }
+    found
+}
+
+/// [`inspect`] of the run's files, its saved state aside.
+fn inspect_run(dir: &Path, config: &RunConfig) -> Result<Found> {
     if !dir.join("summary.json").exists() {
         return Ok(Found::Unfinished(
             "no summary.json: it was stopped before the end".into(),
@@ -474,14 +523,28 @@ fn first_difference(
     }
 }
 
+/// Where a run of the grid starts, and whether it saves its state when it stops.
+struct Start<'a> {
+    from: Option<&'a SavedRun>,
+    keep_state: bool,
+}
+
 fn run_one(
     config: &RunConfig,
     out: &Path,
     learner_threads: usize,
+    start: Start<'_>,
     interrupt: &AtomicBool,
 ) -> Result<Finished> {
+    let path = run_path(out, config);
     // Existing runs were refused (unless --overwrite) before any run started.
-    let mut dir = RunDir::create(&run_path(out, config), config, true)?;
+    let (mut dir, wall_time_before) = match start.from {
+        Some(saved) => (
+            RunDir::resume(&path, config, saved.checkpoint.curve())?,
+            run_dir::load_summary(&path).map_or(0.0, |s| s.wall_time_s),
+        ),
+        None => (RunDir::create(&path, config, true)?, 0.0),
+    };
     if tabular_cmd::handles(&config.env) {
         let (trained, summary) = tabular_cmd::train_into(config, &mut dir, interrupt, |_| {})?;
         return Ok(Finished {
@@ -494,19 +557,33 @@ fn run_one(
     let mut write_error = None;
     let mut options = LearnerOptions::for_run(config);
     options.learner_threads = learner_threads;
-    let trained = train_embedded_with(config, options, interrupt, |report| {
-        if let Err(e) = dir.record(report) {
-            write_error.get_or_insert(e);
-        }
-    })?;
+    let trained = train_embedded_from(
+        config,
+        options,
+        start.from,
+        start.keep_state,
+        interrupt,
+        |report| {
+            if let Err(e) = dir.record(report) {
+                write_error.get_or_insert(e);
+            }
+        },
+    )?;
     if let Some(e) = write_error {
         return Err(e);
     }
     if let Some(best) = &trained.best {
         dir.save_best(best)?;
     }
+    if let Some(saved) = &trained.saved {
+        state::save(&path, saved)?;
+    }
     let curve = trained.curve;
-    let summary = dir.finish(&trained.agent, &curve, started.elapsed().as_secs_f64())?;
+    let summary = dir.finish(
+        &trained.agent,
+        &curve,
+        wall_time_before + started.elapsed().as_secs_f64(),
+    )?;
     Ok(Finished {
         config: config.clone(),
         curve,

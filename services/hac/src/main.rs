@@ -35,15 +35,14 @@ mod export;
 mod health;
 mod render;
 mod schedule;
+mod state;
 mod status_cmd;
 mod tabular_cmd;
 
-use hac_run::checkpoints::CheckpointStore;
 use hac_run::logging::{LogFormat, error_chain, init_tracing};
 use hac_run::{config, plot, registry, run_dir};
 
 use std::cell::RefCell;
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -52,7 +51,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use hac_agent::{Agent, RoundReport, RunConfig};
 use hac_core::{Episodes, LevelCounts, Mode, Policy};
-use hac_learner::{LearnerCheckpoint, LearnerOptions};
+use hac_learner::LearnerOptions;
 use hac_run::daemon::{self, ConfigFile, Mount};
 use hac_serve::{SavedRun, train_embedded_from};
 
@@ -316,9 +315,16 @@ struct ExperimentArgs {
     /// of the same configuration is read back instead of trained again (the summary covers it
     /// with its recorded wall time), an unfinished one (killed, or stopped by Ctrl-C) is trained
     /// again from the start; a finished run of another configuration is refused before any run
-    /// starts. Not with --overwrite.
+    /// starts. A run that saved its state (`--keep-state`) goes on from it instead: an
+    /// interrupted one to its budget, a finished one to a larger `--episodes` (the only key,
+    /// with `stop_at`, that may differ), each the run the larger budget gives from the start.
+    /// Not with --overwrite.
     #[arg(long)]
     resume: bool,
+    /// Each run saves its whole state when it stops (as `hac train --keep-state`), so that
+    /// `--resume` can train the grid on to a larger `--episodes`.
+    #[arg(long)]
+    keep_state: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -518,6 +524,7 @@ fn main() {
                 set: args.set,
                 overwrite: args.overwrite,
                 resume: args.resume,
+                keep_state: args.keep_state,
                 interrupt,
             })
         }),
@@ -698,16 +705,12 @@ fn train_on(args: TrainArgs) -> Result<()> {
     if args.stop_at.is_some() {
         run.stop_at = args.stop_at;
     }
-    let store = CheckpointStore::of_run(&out);
-    let loaded = store.load_newest(saved_run_from_files)?.with_context(|| {
+    let loaded = state::load(&out)?.with_context(|| {
         format!(
             "{} holds no saved state to continue from: train it with --keep-state",
             out.display()
         )
     })?;
-    for skipped in &loaded.skipped {
-        tracing::warn!(checkpoint = %skipped.name, reason = %skipped.reason, "skipped");
-    }
     let mut saved = loaded.value;
     saved
         .checkpoint
@@ -740,28 +743,6 @@ fn train_on(args: TrainArgs) -> Result<()> {
         wall_time_before,
     };
     ran.train(&mut dir, &out)
-}
-
-/// The files of a state `hac train --keep-state` saved: the learner's checkpoint and the
-/// trainer's state beside it.
-const TRAINER_STATE_FILE: &str = "trainer.json";
-
-fn saved_run_from_files(files: &BTreeMap<String, Vec<u8>>) -> Result<SavedRun> {
-    let checkpoint = LearnerCheckpoint::from_files(files)?;
-    if !checkpoint.has_replay() {
-        anyhow::bail!(
-            "it holds no replay (a learner daemon's checkpoint without --checkpoint-replay)"
-        );
-    }
-    let trainer = files.get(TRAINER_STATE_FILE).with_context(|| {
-        format!("{TRAINER_STATE_FILE} is missing: not a `hac train --keep-state` state")
-    })?;
-    let trainer =
-        serde_json::from_slice(trainer).with_context(|| format!("reading {TRAINER_STATE_FILE}"))?;
-    Ok(SavedRun {
-        checkpoint,
-        trainer,
-    })
 }
 
 /// One embedded training run into a run directory, from the start or from a saved state.
@@ -805,12 +786,7 @@ impl Embedded<'_> {
             dir.save_best(best)?;
         }
         if let Some(saved) = &trained.saved {
-            let mut files = saved.checkpoint.to_files();
-            files.push((
-                TRAINER_STATE_FILE.to_string(),
-                serde_json::to_vec_pretty(&saved.trainer)?,
-            ));
-            let written = CheckpointStore::of_run(out).write(&files, 1)?;
+            let written = state::save(out, saved)?;
             outln!(
                 "state saved in {} ({:.1} MB): `hac train --resume --out {} --episodes N` continues it",
                 written.path.display(),

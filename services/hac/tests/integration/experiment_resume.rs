@@ -297,3 +297,81 @@ fn resume_refuses_a_finished_run_of_another_configuration_and_overwrite() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `curve.csv` without its wall-clock columns (elapsed, env steps/s, updates/s).
+fn curve_without_times(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("curve.csv"))
+        .unwrap()
+        .lines()
+        .map(|row| {
+            let fields: Vec<&str> = row.split(',').collect();
+            [&fields[..4], &fields[7..]].concat().join(",")
+        })
+        .collect()
+}
+
+/// A grid run with `--keep-state` trains on with `--resume` and a larger `--episodes`: every run
+/// goes on from its saved state and ends as the run the larger budget gives from the start.
+#[test]
+fn resume_trains_a_kept_grid_on_to_a_larger_budget() {
+    let (kept, whole) = (scratch("kept"), scratch("whole"));
+    let grid = |out: &Path, episodes: &str, extra: &[&str]| {
+        let mut args = vec![
+            "experiment",
+            "--env",
+            "pendulum",
+            "--levels",
+            "1",
+            "--seeds",
+            "2",
+        ];
+        args.extend(["--episodes", episodes, "--max-actions", "50"]);
+        args.extend([
+            "--set",
+            "exploration_episodes=2",
+            "--set",
+            "test_episodes=3",
+        ]);
+        args.extend([
+            "--jobs",
+            "2",
+            "--learner-threads",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        args.extend_from_slice(extra);
+        let o = hac_output(&args);
+        assert!(o.status.success(), "experiment failed: {}", text(&o.stderr));
+        text(&o.stdout)
+    };
+    grid(&whole, "6", &[]);
+    grid(&kept, "4", &["--keep-state"]);
+    let stdout = grid(&kept, "6", &["--resume"]);
+    for seed in 0..2 {
+        let run = format!("pendulum-1l-seed{seed}");
+        assert!(
+            stdout.contains(&format!(
+                "{run}: going on from its saved state at 4 episodes to 6"
+            )),
+            "{stdout}"
+        );
+        let (a, b) = (kept.join(&run), whole.join(&run));
+        assert_eq!(curve_without_times(&a), curve_without_times(&b));
+        let weights = |r: &Path| std::fs::read(r.join("weights/level0.safetensors")).unwrap();
+        assert!(weights(&a) == weights(&b), "{run}: the weights differ");
+        assert_eq!(summary_json(&a)["episodes"], 6);
+    }
+    assert!(
+        stdout.contains("(0 finished already, 2 to train)"),
+        "{stdout}"
+    );
+    // Resumed again at the same budget, both runs are finished: read back.
+    let stdout = grid(&kept, "6", &["--resume"]);
+    assert!(
+        stdout.contains("(2 finished already, 0 to train)"),
+        "{stdout}"
+    );
+    let _ = std::fs::remove_dir_all(&kept);
+    let _ = std::fs::remove_dir_all(&whole);
+}
