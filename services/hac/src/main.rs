@@ -644,11 +644,7 @@ fn train(args: TrainArgs) -> Result<()> {
         return Ok(());
     }
     // Checked before the run directory is made.
-    let mut options = LearnerOptions::for_run(&run);
-    if let Some(threads) = args.learner_threads {
-        options.learner_threads = threads;
-        options.validate()?;
-    }
+    let options = learner_options(&run, args.learner_threads)?;
     let out = args
         .out
         .unwrap_or_else(|| PathBuf::from("runs").join(run.run_name()));
@@ -665,6 +661,16 @@ fn train(args: TrainArgs) -> Result<()> {
         wall_time_before: 0.0,
     };
     ran.train(&mut dir, &out)
+}
+
+/// The embedded learner's options for `run`, with `--learner-threads` if given.
+fn learner_options(run: &RunConfig, threads: Option<usize>) -> Result<LearnerOptions> {
+    let mut options = LearnerOptions::for_run(run);
+    if let Some(threads) = threads {
+        options.learner_threads = threads;
+        options.validate()?;
+    }
+    Ok(options)
 }
 
 /// `hac train --resume`: the run in `--out` continued from the state `--keep-state` saved.
@@ -720,11 +726,7 @@ fn train_on(args: TrainArgs) -> Result<()> {
         out!("{}", toml::to_string(&run)?);
         return Ok(());
     }
-    let mut options = LearnerOptions::for_run(&run);
-    if let Some(threads) = args.learner_threads {
-        options.learner_threads = threads;
-        options.validate()?;
-    }
+    let options = learner_options(&run, args.learner_threads)?;
     let mut dir = run_dir::RunDir::resume(&out, &run, saved.checkpoint.curve())?;
     outln!(
         "continuing {} from {} episodes ({} test rounds, {}) to {} episodes",

@@ -307,3 +307,15 @@ pub fn tools_opted_in(test: &str, tool: &str) -> bool {
     }
     on
 }
+
+/// `curve.csv` without its wall-clock columns (elapsed, env steps/s, updates/s).
+pub fn curve_without_times(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("curve.csv"))
+        .unwrap()
+        .lines()
+        .map(|row| {
+            let fields: Vec<&str> = row.split(',').collect();
+            [&fields[..4], &fields[7..]].concat().join(",")
+        })
+        .collect()
+}

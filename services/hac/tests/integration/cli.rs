@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, ExitStatus, Output};
 
 use crate::common;
-use common::{hac_output, text};
+use common::{curve_without_times, hac_output, text};
 
 fn scratch(name: &str) -> PathBuf {
     common::fresh_path("hac-cli-test", name)
@@ -701,18 +701,6 @@ fn experiment_runs_the_grid_and_summarises_it() {
         text(&o.stderr)
     );
     let _ = std::fs::remove_dir_all(&out);
-}
-
-/// `curve.csv` without its wall-clock columns (elapsed, env steps/s, updates/s).
-fn curve_without_times(run: &Path) -> Vec<String> {
-    std::fs::read_to_string(run.join("curve.csv"))
-        .unwrap()
-        .lines()
-        .map(|row| {
-            let fields: Vec<&str> = row.split(',').collect();
-            [&fields[..4], &fields[7..]].concat().join(",")
-        })
-        .collect()
 }
 
 /// `hac train --keep-state` saves a run's whole state, and `hac train --resume` trains it on

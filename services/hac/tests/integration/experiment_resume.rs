@@ -9,7 +9,7 @@ use std::process::Output;
 use std::time::SystemTime;
 
 use crate::common;
-use common::{hac_output, text};
+use common::{curve_without_times, hac_output, text};
 
 fn scratch(name: &str) -> PathBuf {
     common::fresh_path("hac-experiment-resume-test", name)
@@ -296,18 +296,6 @@ fn resume_refuses_a_finished_run_of_another_configuration_and_overwrite() {
         "the run was touched"
     );
     let _ = std::fs::remove_dir_all(&out);
-}
-
-/// `curve.csv` without its wall-clock columns (elapsed, env steps/s, updates/s).
-fn curve_without_times(run: &Path) -> Vec<String> {
-    std::fs::read_to_string(run.join("curve.csv"))
-        .unwrap()
-        .lines()
-        .map(|row| {
-            let fields: Vec<&str> = row.split(',').collect();
-            [&fields[..4], &fields[7..]].concat().join(",")
-        })
-        .collect()
 }
 
 /// A grid run with `--keep-state` trains on with `--resume` and a larger `--episodes`: every run
