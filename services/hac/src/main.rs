@@ -645,6 +645,13 @@ fn train(args: TrainArgs) -> Result<()> {
     }
     // Checked before the run directory is made.
     let options = learner_options(&run, args.learner_threads)?;
+    if args.keep_state && tabular_cmd::handles(&run.env) {
+        anyhow::bail!(
+            "--keep-state is for neural runs: `{}` is a grid world, whose tabular runs train in \
+             seconds and keep no state",
+            run.env
+        );
+    }
     let out = args
         .out
         .unwrap_or_else(|| PathBuf::from("runs").join(run.run_name()));

@@ -785,6 +785,25 @@ fn a_kept_run_trains_on_with_resume_to_the_longer_run() {
             text(&o.stderr)
         );
     }
+    let grid_world = scratch("train-on-four-rooms");
+    let o = hac_output(&[
+        "train",
+        "--env",
+        "four-rooms",
+        "--keep-state",
+        "--out",
+        grid_world.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o.stderr).contains("--keep-state is for neural runs: `four-rooms` is a grid world"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(
+        !grid_world.exists(),
+        "refused before the run directory is made"
+    );
     let o = hac_output(&[
         "train",
         "--resume",
