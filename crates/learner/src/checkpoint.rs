@@ -40,7 +40,6 @@ use hac_proto::{ActorRole, WeightsSnapshot};
 use hac_replay::{RateLimiter, RateLimiterCounts, Replay};
 use parking_lot::{Condvar, Mutex};
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 use crate::ingest::Counters;
 use crate::registry::{ActorEntry, Registry};
@@ -428,7 +427,7 @@ impl LearnerCheckpoint {
             )));
         }
         let text = run.to_toml();
-        self.state.run_config_digest = crate::hex(&Sha256::digest(text.as_bytes()));
+        self.state.run_config_digest = crate::config_digest(&text);
         self.state.run_config = text;
         self.state.completed = None;
         Ok(())

@@ -252,7 +252,7 @@ impl Learner {
         let mut level_rngs: Vec<Rng> = (0..config.levels).map(|_| root.fork()).collect();
         let mut learners = agent.into_levels();
         let run_toml = run.to_toml();
-        let digest = hex(&Sha256::digest(run_toml.as_bytes()));
+        let digest = config_digest(&run_toml);
         let resumed = match from {
             Some(checkpoint) => Some(checkpoint.restore_into(
                 &run,
@@ -842,6 +842,11 @@ fn mix(seed: u64, ordinal: u64, incarnation: u64) -> u64 {
         z ^= z >> 31;
     }
     z
+}
+
+/// The digest of a run config's TOML, as actors and checkpoints carry it.
+fn config_digest(run_toml: &str) -> String {
+    hex(&Sha256::digest(run_toml.as_bytes()))
 }
 
 fn hex(bytes: &[u8]) -> String {

@@ -29,12 +29,13 @@ use anyhow::{Context, Result, bail};
 use hac_agent::RoundReport;
 use hac_core::hiro::Algo;
 use hac_learner::{LearnerOptions, MAX_LEARNER_THREADS, available_threads};
-use hac_serve::{SavedRun, train_embedded_from};
+use hac_serve::SavedRun;
 
 use crate::config::{self, RunConfig};
 use crate::plot;
 use crate::run_dir::{self, RunDir, Summary};
-use crate::{state, tabular_cmd};
+use crate::state::{self, Embedded};
+use crate::tabular_cmd;
 
 /// What to run.
 #[derive(Debug)]
@@ -170,19 +171,15 @@ pub fn run(grid: Grid) -> Result<()> {
         .with_context(|| format!("creating {}", grid.out.display()))?;
     // The finished runs read back, each with its index in `runs`.
     let mut reused: Vec<(usize, Finished)> = Vec::new();
-    // The runs to train, each with why it is trained again if it was there unfinished.
-    let mut to_train: Vec<(usize, Option<String>)> = Vec::new();
-    // The saved states the runs to train go on from, by index in `runs`.
-    let mut from: Vec<Option<SavedRun>> = runs.iter().map(|_| None).collect();
+    // The runs to train, each with why it is trained again if it was there unfinished, or the
+    // saved state it goes on from.
+    let mut to_train: Vec<(usize, Option<String>, Option<SavedRun>)> = Vec::new();
     for (i, found) in found.into_iter().enumerate() {
         match found {
-            Found::Nothing => to_train.push((i, None)),
+            Found::Nothing => to_train.push((i, None, None)),
             Found::Finished(f) => reused.push((i, *f)),
-            Found::Unfinished(why) => to_train.push((i, Some(why))),
-            Found::Continue(saved) => {
-                to_train.push((i, None));
-                from[i] = Some(*saved);
-            }
+            Found::Unfinished(why) => to_train.push((i, Some(why), None)),
+            Found::Continue(saved) => to_train.push((i, None, Some(*saved))),
         }
     }
     outln!(
@@ -219,7 +216,7 @@ pub fn run(grid: Grid) -> Result<()> {
             outcome(&f.summary)
         );
     }
-    for (i, why) in &to_train {
+    for (i, why, from) in &to_train {
         let path = run_path(&grid.out, &runs[*i]);
         if let Some(why) = why {
             outln!(
@@ -227,7 +224,7 @@ pub fn run(grid: Grid) -> Result<()> {
                 path.display()
             );
         }
-        if let Some(saved) = &from[*i] {
+        if let Some(saved) = from {
             outln!(
                 "{}: going on from its saved state at {} episodes to {}",
                 path.display(),
@@ -246,14 +243,16 @@ pub fn run(grid: Grid) -> Result<()> {
     std::thread::scope(|scope| {
         for _ in 0..grid.jobs.min(to_train.len()) {
             scope.spawn(|| {
-                while let Some((i, again)) = to_train.get(next.fetch_add(1, Ordering::Relaxed)) {
+                while let Some((i, again, from)) =
+                    to_train.get(next.fetch_add(1, Ordering::Relaxed))
+                {
                     if grid.interrupt.load(Ordering::Relaxed) {
                         break;
                     }
                     let config = &runs[*i];
                     let start = Start {
-                        from: from[*i].as_ref(),
-                        keep_state: grid.keep_state || from[*i].is_some(),
+                        from: from.as_ref(),
+                        keep_state: grid.keep_state || from.is_some(),
                     };
                     let result =
                         run_one(config, &grid.out, learner_threads, start, &grid.interrupt);
@@ -538,12 +537,9 @@ fn run_one(
 ) -> Result<Finished> {
     let path = run_path(out, config);
     // Existing runs were refused (unless --overwrite) before any run started.
-    let (mut dir, wall_time_before) = match start.from {
-        Some(saved) => (
-            RunDir::resume(&path, config, saved.checkpoint.curve())?,
-            run_dir::load_summary(&path).map_or(0.0, |s| s.wall_time_s),
-        ),
-        None => (RunDir::create(&path, config, true)?, 0.0),
+    let mut dir = match start.from {
+        Some(saved) => RunDir::resume(&path, config, saved.checkpoint.curve())?,
+        None => RunDir::create(&path, config, true)?,
     };
     if tabular_cmd::handles(&config.env) {
         let (trained, summary) = tabular_cmd::train_into(config, &mut dir, interrupt, |_| {})?;
@@ -553,37 +549,17 @@ fn run_one(
             summary,
         });
     }
-    let started = Instant::now();
-    let mut write_error = None;
     let mut options = LearnerOptions::for_run(config);
     options.learner_threads = learner_threads;
-    let trained = train_embedded_from(
-        config,
+    let embedded = Embedded {
+        run: config,
         options,
-        start.from,
-        start.keep_state,
+        from: start.from,
+        keep_state: start.keep_state,
         interrupt,
-        |report| {
-            if let Err(e) = dir.record(report) {
-                write_error.get_or_insert(e);
-            }
-        },
-    )?;
-    if let Some(e) = write_error {
-        return Err(e);
-    }
-    if let Some(best) = &trained.best {
-        dir.save_best(best)?;
-    }
-    if let Some(saved) = &trained.saved {
-        state::save(&path, saved)?;
-    }
-    let curve = trained.curve;
-    let summary = dir.finish(
-        &trained.agent,
-        &curve,
-        wall_time_before + started.elapsed().as_secs_f64(),
-    )?;
+        progress: false,
+    };
+    let (curve, summary) = embedded.train(&mut dir, &path)?;
     Ok(Finished {
         config: config.clone(),
         curve,

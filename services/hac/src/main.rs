@@ -44,16 +44,15 @@ use hac_run::{config, plot, registry, run_dir};
 
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
-use hac_agent::{Agent, RoundReport, RunConfig};
+use hac_agent::{Agent, RunConfig};
 use hac_core::{Episodes, LevelCounts, Mode, Policy};
 use hac_learner::LearnerOptions;
 use hac_run::daemon::{self, ConfigFile, Mount};
-use hac_serve::{SavedRun, train_embedded_from};
+use state::Embedded;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -660,14 +659,25 @@ fn train(args: TrainArgs) -> Result<()> {
         return tabular_cmd::train(&run, dir, &out);
     }
     outln!("{}", run_dir::training_banner(&run, &out, None));
-    let ran = Embedded {
-        run: &run,
-        options,
-        from: None,
-        keep_state: args.keep_state,
-        wall_time_before: 0.0,
-    };
-    ran.train(&mut dir, &out)
+    train_into(
+        Embedded {
+            run: &run,
+            options,
+            from: None,
+            keep_state: args.keep_state,
+            interrupt: &*hac_run::signals::interrupt_flag()?,
+            progress: true,
+        },
+        &mut dir,
+        &out,
+    )
+}
+
+/// `hac train`'s run into `dir`, with its last line.
+fn train_into(embedded: Embedded<'_>, dir: &mut run_dir::RunDir, out: &Path) -> Result<()> {
+    let (_, summary) = embedded.train(dir, out)?;
+    outln!("{}", summary.done_line(out));
+    Ok(())
 }
 
 /// The embedded learner's options for `run`, with `--learner-threads` if given.
@@ -743,74 +753,18 @@ fn train_on(args: TrainArgs) -> Result<()> {
         loaded.name,
         run.episodes
     );
-    let wall_time_before = run_dir::load_summary(&out).map_or(0.0, |s| s.wall_time_s);
-    let ran = Embedded {
-        run: &run,
-        options,
-        from: Some(&saved),
-        keep_state: true,
-        wall_time_before,
-    };
-    ran.train(&mut dir, &out)
-}
-
-/// One embedded training run into a run directory, from the start or from a saved state.
-struct Embedded<'a> {
-    run: &'a RunConfig,
-    options: LearnerOptions,
-    from: Option<&'a SavedRun>,
-    keep_state: bool,
-    /// Wall time of the earlier processes of a continued run, for `summary.json`.
-    wall_time_before: f64,
-}
-
-impl Embedded<'_> {
-    fn train(self, dir: &mut run_dir::RunDir, out: &Path) -> Result<()> {
-        let interrupt = hac_run::signals::interrupt_flag()?;
-        let started = Instant::now();
-        let mut write_error = None;
-        let trained = train_embedded_from(
-            self.run,
-            self.options,
-            self.from,
-            self.keep_state,
-            &interrupt,
-            |report: &RoundReport| {
-                outln!("{}", schedule::progress_line(report));
-                if let Err(e) = dir.record(report) {
-                    write_error.get_or_insert(e);
-                }
-            },
-        )?;
-        if let Some(e) = write_error {
-            return Err(e);
-        }
-        if interrupt.load(Ordering::Relaxed) {
-            outln!(
-                "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
-                trained.actor.episodes
-            );
-        }
-        if let Some(best) = &trained.best {
-            dir.save_best(best)?;
-        }
-        if let Some(saved) = &trained.saved {
-            let written = state::save(out, saved)?;
-            outln!(
-                "state saved in {} ({:.1} MB): `hac train --resume --out {} --episodes N` continues it",
-                written.path.display(),
-                written.bytes as f64 / 1e6,
-                out.display()
-            );
-        }
-        let summary = dir.finish(
-            &trained.agent,
-            &trained.curve,
-            self.wall_time_before + started.elapsed().as_secs_f64(),
-        )?;
-        outln!("{}", summary.done_line(out));
-        Ok(())
-    }
+    train_into(
+        Embedded {
+            run: &run,
+            options,
+            from: Some(&saved),
+            keep_state: true,
+            interrupt: &*hac_run::signals::interrupt_flag()?,
+            progress: true,
+        },
+        &mut dir,
+        &out,
+    )
 }
 
 /// A subgoal a level above 0 proposed: the level, the state and goal it proposed from, and its

@@ -1,14 +1,93 @@
-//! A run's whole saved state, as `hac train --keep-state` and `hac experiment --keep-state`
-//! write it and `--resume` reads it: the learner's checkpoint with its replay, and the trainer's
-//! state beside it (docs/CHECKPOINTS.md, "Training on").
+//! An embedded run trained into its run directory, from the start or from a saved state, as
+//! `hac train` and each run of `hac experiment` train; and the run's whole saved state, as
+//! `--keep-state` writes it and `--resume` reads it: the learner's checkpoint with its replay,
+//! and the trainer's state beside it (docs/CHECKPOINTS.md, "Training on").
 
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
 
 use anyhow::{Context, Result};
-use hac_learner::LearnerCheckpoint;
+use hac_agent::{RoundReport, RunConfig};
+use hac_learner::{LearnerCheckpoint, LearnerOptions};
 use hac_run::checkpoints::{CheckpointStore, Loaded, Written};
-use hac_serve::SavedRun;
+use hac_run::outln;
+use hac_run::run_dir::{self, RunDir, Summary};
+use hac_serve::{SavedRun, train_embedded_from};
+
+use crate::schedule;
+
+/// One embedded training run into a run directory.
+pub struct Embedded<'a> {
+    pub run: &'a RunConfig,
+    pub options: LearnerOptions,
+    /// The saved state it goes on from (its directory then holds the earlier processes' rounds
+    /// and summary, whose wall time the new summary adds to).
+    pub from: Option<&'a SavedRun>,
+    /// Save the whole state when it stops.
+    pub keep_state: bool,
+    pub interrupt: &'a AtomicBool,
+    /// Print a progress line per round, and what was saved (`hac train`).
+    pub progress: bool,
+}
+
+impl Embedded<'_> {
+    /// Trains into `dir` (the run directory `out`): the curve round by round, then the best
+    /// weights, the saved state if asked for, the weights and `summary.json`.
+    pub fn train(self, dir: &mut RunDir, out: &Path) -> Result<(Vec<RoundReport>, Summary)> {
+        let wall_time_before = match self.from {
+            Some(_) => run_dir::load_summary(out).map_or(0.0, |s| s.wall_time_s),
+            None => 0.0,
+        };
+        let started = Instant::now();
+        let mut write_error = None;
+        let trained = train_embedded_from(
+            self.run,
+            self.options,
+            self.from,
+            self.keep_state,
+            self.interrupt,
+            |report: &RoundReport| {
+                if self.progress {
+                    outln!("{}", schedule::progress_line(report));
+                }
+                if let Err(e) = dir.record(report) {
+                    write_error.get_or_insert(e);
+                }
+            },
+        )?;
+        if let Some(e) = write_error {
+            return Err(e);
+        }
+        if self.progress && self.interrupt.load(Ordering::Relaxed) {
+            outln!(
+                "interrupted after {} episodes: saving what was learned (a second signal exits at once)",
+                trained.actor.episodes
+            );
+        }
+        if let Some(best) = &trained.best {
+            dir.save_best(best)?;
+        }
+        if let Some(saved) = &trained.saved {
+            let written = save(out, saved)?;
+            if self.progress {
+                outln!(
+                    "state saved in {} ({:.1} MB): `hac train --resume --out {} --episodes N` continues it",
+                    written.path.display(),
+                    written.bytes as f64 / 1e6,
+                    out.display()
+                );
+            }
+        }
+        let summary = dir.finish(
+            &trained.agent,
+            &trained.curve,
+            wall_time_before + started.elapsed().as_secs_f64(),
+        )?;
+        Ok((trained.curve, summary))
+    }
+}
 
 /// The trainer's state, beside the learner's checkpoint files.
 const TRAINER_STATE_FILE: &str = "trainer.json";
